@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# One command: set up everything and run the test suite (slow end-to-end tests excluded unless
+# VLSFOREST_SLOW=1). Extra arguments go to pytest.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$ROOT/scripts/bootstrap.sh"
+cd "$ROOT"
+MARK=(-m "not slow")
+[ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
+set +e
+.venv/bin/python -m pytest -q -p no:cacheprovider "${MARK[@]}" "$@"
+rc=$?
+set -e
+[ $rc -eq 5 ] && { echo "run-tests: pytest collected no tests — failing" >&2; exit 1; }
+exit $rc

@@ -1,0 +1,120 @@
+"""Unit tests of the sub-ray pattern, energy model and peak detection against closed forms."""
+
+import numpy as np
+import pytest
+
+from vlsforest.errors import ConfigError
+from vlsforest.sim.beam import gaussian_weight, ring_counts, subray_directions, subray_pattern
+from vlsforest.sim.waveform import C_M_PER_NS, detect_returns, pulse_shape, subray_energy
+
+
+@pytest.mark.parametrize("q,n", [(1, 1), (2, 7), (3, 19), (4, 37), (5, 61)])
+def test_subray_counts(q, n):
+    assert ring_counts(q).sum() == n
+    assert subray_pattern(q, 0.5).n == n
+
+
+def test_ring_angles_and_unit_directions():
+    pat = subray_pattern(3, 0.3)
+    ang = np.hypot(pat.offsets[:, 0], pat.offsets[:, 1])
+    # HELIOS placement: rings at 0, div/3, 2div/3 off axis
+    assert np.allclose(np.unique(np.round(ang, 12)), [0, 0.1e-3, 0.2e-3])
+    d = np.array([[0.0, 0.0, -1.0]])
+    e = np.array([[1.0, 0.0, 0.0]])
+    dirs = subray_directions(d, e, pat)[0]
+    assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    off_axis = np.arccos(np.clip(dirs @ d[0], -1, 1))
+    assert np.allclose(np.sort(off_axis), np.sort(ang), atol=1e-9)
+    # physical ring scale halves the extent
+    phys = subray_pattern(3, 0.3, ring_scale="physical")
+    assert np.allclose(np.abs(phys.offsets), np.abs(pat.offsets) / 2)
+
+
+def test_gaussian_weights_follow_profile():
+    pat = subray_pattern(3, 0.25)
+    w = pat.weights(np.full(pat.n, 1e6), range0=0.0)
+    assert np.allclose(np.unique(np.round(w, 6)), np.round([np.exp(-8 / 9), np.exp(-2 / 9), 1.0], 6))
+    # weight = exp(-2 r²/w²) of the sub-ray's lateral offset at range R, with w = div·R (HELIOS)
+    R = 700.0
+    r = np.hypot(*pat.offsets.T) * R
+    assert np.allclose(pat.weights(np.full(pat.n, R)), np.exp(-2 * r ** 2 / (0.25e-3 * R) ** 2))
+    # the R0 term of the beam-waist model reduces the exponent
+    assert gaussian_weight(1.0, 100.0, range0=100.0) == pytest.approx(np.exp(-1.0))
+
+
+def test_elliptical_pattern_scales_axes():
+    pat = subray_pattern(3, [1.6, 0.5], orientation_deg=0)
+    assert np.abs(pat.offsets[:, 0]).max() == pytest.approx(2 / 3 * 1.6e-3)
+    assert np.abs(pat.offsets[:, 1]).max() == pytest.approx(2 / 3 * 0.5e-3, rel=1e-9)
+    rot = subray_pattern(3, [1.6, 0.5], orientation_deg=90)
+    assert np.abs(rot.offsets[:, 1]).max() == pytest.approx(2 / 3 * 1.6e-3)
+    with pytest.raises(ConfigError):
+        subray_pattern(3, [0.5, 1.6])
+
+
+def test_pulse_shape_reference_values():
+    p = pulse_shape(4.0, 0.25)
+    assert len(p) == 16 and p[0] == 0 and np.argmax(p) == 5
+    assert p[5] == pytest.approx(0.5369, abs=1e-4)
+    assert p[4] == pytest.approx(0.5322, abs=1e-4)
+
+
+def test_energy_magnitude_and_cos_squared():
+    e0 = subray_energy(500.0, 1.0, 1.0, 50.0, 19, average_power_w=4, receiver_diameter_m=0.15,
+                       optical_efficiency=0.99)
+    assert 700 < e0 < 780  # reference: ~740 units for the central sub-ray at 500 m
+    e60 = subray_energy(500.0, 1.0, 0.5, 50.0, 19, average_power_w=4, receiver_diameter_m=0.15,
+                        optical_efficiency=0.99)
+    assert e60 / e0 == pytest.approx(0.25)  # Lambertian: σ ∝ cos² a
+    e1000 = subray_energy(1000.0, 1.0, 1.0, 50.0, 19, average_power_w=4, receiver_diameter_m=0.15,
+                          optical_efficiency=0.99)
+    assert e0 / e1000 == pytest.approx(4.0)  # extended target: 1/R²
+
+
+def _two(d1, d2, **kw):
+    return detect_returns(np.array([0, 2]), np.array([d1, d2]), np.array([100.0, 100.0]), **kw)
+
+
+def test_single_target_exact_range():
+    r = detect_returns(np.array([0, 1]), np.array([523.4567]), np.array([5.0]), window_size_ns=1.5)
+    assert r["n_returns"][0] == 1 and abs(r["range"][0] - 523.4567) < 1e-9
+
+
+def test_close_targets_merge_to_midpoint():
+    r = _two(500.0, 500.3, window_size_ns=1.75, peak_rule="helios")
+    assert r["n_returns"][0] == 1
+    assert r["range"][0] == pytest.approx(500.15, abs=0.0375)
+
+
+def test_helios_rule_reference_vectors():
+    # replica vectors of the reference notes: 500 m and 503 m → 1 return at win 7, 2 at win 4
+    assert _two(500.0, 503.0, window_size_ns=1.75, peak_rule="helios")["n_returns"][0] == 1
+    assert _two(500.0, 503.0, window_size_ns=1.0, peak_rule="helios")["n_returns"][0] == 2
+    # two equal targets resolve at win 6/7 only between 0.68 and 1.19 m
+    for sep, n in [(0.6, 1), (0.8, 2), (1.0, 2), (1.3, 1)]:
+        assert _two(500.0, 500.0 + sep, window_size_ns=1.5, peak_rule="helios")["n_returns"][0] == n
+
+
+def test_physical_rule_resolves_isolated_echoes():
+    dead = C_M_PER_NS * 1.5  # 0.45 m
+    assert _two(500.0, 503.0, window_size_ns=1.5)["n_returns"][0] == 2
+    assert _two(500.0, 500.0 + 0.9 * dead, window_size_ns=1.5)["n_returns"][0] == 1
+    r = _two(500.0, 510.0, window_size_ns=1.5)
+    assert np.allclose(r["range"], [500.0, 510.0], atol=C_M_PER_NS * 0.25)
+
+
+def test_max_returns_and_threshold():
+    ptr = np.array([0, 3])
+    rng = np.array([500.0, 505.0, 510.0])
+    en = np.array([10.0, 3.0, 6.0])
+    assert detect_returns(ptr, rng, en, max_returns=1)["range"].tolist() == [500.0]
+    r = detect_returns(ptr, rng, en, min_energy=0.537 * 5.0)
+    # the 3-unit echo (peak 0.537·3 = 1.6) is removed, the 6- and 10-unit ones stay
+    assert np.allclose(r["range"], [500.0, 510.0], atol=0.08)
+    assert (r["amplitude"] >= 0.537 * 5.0).all()
+
+
+def test_nearest_hit_gives_object():
+    r = detect_returns(np.array([0, 3]), np.array([500.0, 500.02, 507.0]), np.ones(3) * 10)
+    assert r["n_returns"][0] == 2
+    assert r["hit"].tolist() == [0, 2]

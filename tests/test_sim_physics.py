@@ -1,0 +1,177 @@
+"""End-to-end physics of the simulator on analytic scenes (planes, step edges, wires)."""
+
+import numpy as np
+import pytest
+
+from vlsforest.sim import Material, Scene, redetect, simulate
+from vlsforest.sim.survey import survey_from_dict
+from vlsforest.sim.waveform import C_M_PER_NS
+
+
+def _survey(overrides, legs, speed=5.0, scanner="riegl_vq780i", detector=None, seed=0):
+    d = {"scanner": scanner, "overrides": dict(overrides), "platform": {"speed_mps": speed, "legs": legs},
+         "seed": seed}
+    if detector:
+        d["detector"] = detector
+    return survey_from_dict(d)
+
+
+def _line(y0, y1, z, x=0.0):
+    return [{"start": [x, y0, z], "end": [x, y1, z], "active": True}]
+
+
+def _wire_box(x_c, width, y0, y1, z):
+    """A thin box (wire) along y centred at x_c, as 12 triangles."""
+    h = width / 2
+    v = np.array([[x, y, zz] for x in (x_c - h, x_c + h) for y in (y0, y1) for zz in (z - h, z + h)], float)
+    f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    return v, np.array(f)
+
+
+NADIR = {"prf_hz": 20000, "scan_freq_hz": 20, "scan_angle_deg": 0.02, "max_scan_angle_deg": 0.02,
+         "range_min_m": 0.0}
+
+
+def test_plane_at_nadir_one_return_exact_range():
+    sc = Scene()
+    sc.add_plane(1, 12.5, [-50, -50, 50, 50])
+    sv = _survey(NADIR, _line(-2, 2, 512.5))
+    res = simulate(sc, sv, workers=1)
+    pu, pt = res.pulses, res.points
+    assert len(pu["slot"]) > 1000
+    assert (pu["n_returns"] == 1).all()
+    # range on the central axis: |z - plane| / cos
+    p = np.searchsorted(pu["slot"], pt["pulse"])
+    true_range = (pu["origin"][p, 2] - 12.5) / -pu["direction"][p, 2]
+    rng = np.linalg.norm(pt["xyz"] - pu["origin"][p], axis=1)
+    assert np.abs(rng - true_range).max() < 1e-3
+    assert np.abs(pt["xyz"][:, 2] - 12.5).max() < 1e-3
+
+
+def _step_scene(delta):
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-20, -20, 0.0, 20])          # upper plane, x < 0
+    sc.add_plane(2, -delta, [0.0, -20, 20, 20])         # lower plane, x ≥ 0
+    return sc
+
+
+def _step_survey(rule="physical"):
+    # nadir pulses flying along x across the edge at x = 0; 0.5 mrad beam at 300 m
+    ov = dict(NADIR, prf_hz=2000, scan_freq_hz=2, beam_divergence_mrad=0.5, window_size_ns=1.5)
+    legs = [{"start": [-0.5, 0.0, 300.0], "end": [0.5, 0.0, 300.0], "active": True}]
+    return _survey(ov, legs, speed=1.0, detector={"peak_rule": rule})
+
+
+def test_step_edge_two_returns_where_footprint_straddles():
+    delta = 2.0  # farther apart than the 0.45 m dead zone (and the 1.2 m pulse)
+    res = simulate(_step_scene(delta), _step_survey(), workers=1)
+    pu = res.pulses
+    x_c = pu["origin"][:, 0] + pu["direction"][:, 0] / -pu["direction"][:, 2] * 300.0
+    # hand calculation: the outer ring reaches 2/3·div·R across the beam axis in every direction
+    r_out = 2 / 3 * 0.5e-3 * 300.0
+    expected = np.abs(x_c) < r_out
+    n_two = int((pu["n_returns"] == 2).sum())
+    assert n_two == pytest.approx(int(expected.sum()), abs=1)
+    assert n_two >= 100
+    assert set(np.unique(pu["n_returns"])) == {1, 2}
+    two = pu["n_returns"] == 2
+    assert np.abs(x_c[two]).max() < r_out * 1.001
+
+
+def test_step_edge_closer_than_dead_zone_one_return():
+    res = simulate(_step_scene(0.2), _step_survey(), workers=1)
+    assert (res.pulses["n_returns"] == 1).all()
+
+
+def test_step_edge_helios_rule_suppresses_isolated_echo():
+    # HELIOS++ v1.0 quirk: at window 1.5 ns an echo that does not overlap earlier energy is lost
+    res = simulate(_step_scene(2.0), _step_survey("helios"), workers=1)
+    assert (res.pulses["n_returns"] == 1).all()
+
+
+def _wire_hits(orientation_deg):
+    sc = Scene()
+    v, f = _wire_box(0.0, 0.001, -5, 5, 0.0)
+    sc.add_mesh(7, v, f)
+    # one scan line sweeping across the wire (the scan direction is along x), 1 mm pulse spacing
+    ov = {"prf_hz": 100000, "scan_freq_hz": 100, "scan_angle_deg": 0.2, "max_scan_angle_deg": 0.2,
+          "beam_divergence_mrad": [1.6, 0.5], "beam_orientation_deg": orientation_deg, "range_min_m": 0.0}
+    legs = [{"start": [0.0, 0.0, 100.0], "end": [0.0, 0.0101, 100.0], "active": True}]
+    sv = _survey(ov, legs, speed=1.0)
+    res = simulate(sc, sv, workers=1)
+    pu = res.pulses
+    hit = pu["n_returns"] > 0
+    x_c = pu["origin"][:, 0] + pu["direction"][:, 0] / -pu["direction"][:, 2] * 100.0
+    return x_c[hit].max() - x_c[hit].min()
+
+
+def test_elliptical_beam_wire_widths_ratio():
+    wide = _wire_hits(0.0)      # major axis along the scan direction, across the wire
+    narrow = _wire_hits(90.0)   # minor axis across the wire
+    assert wide / narrow == pytest.approx(1.6 / 0.5, rel=0.05)
+    assert wide == pytest.approx(2 * 2 / 3 * 1.6e-3 * 100.0, rel=0.05)
+
+
+@pytest.mark.parametrize("scanner,ov,share", [
+    ("riegl_vq780i", {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0}, 1.0),
+    ("riegl_minivux1uav", {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0}, 60 / 360),
+])
+def test_ground_density_matches_analytic(scanner, ov, share):
+    h, v = 60.0, 4.0
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-200, -200, 200, 200])
+    ov = dict(ov, range_min_m=0.0)
+    sv = _survey(ov, _line(-20, 20, h), speed=v, scanner=scanner)
+    res = simulate(sc, sv, workers=1)
+    xyz = res.points["xyz"]
+    swath = 2 * h * np.tan(np.deg2rad(30.0))
+    sel = (np.abs(xyz[:, 1]) < 10.0) & (np.abs(xyz[:, 0]) <= swath / 2)
+    density = sel.sum() / (20.0 * swath)
+    analytic = ov["prf_hz"] * share / (v * swath)
+    assert density == pytest.approx(analytic, rel=0.05)
+
+
+def test_range_noise_sigma():
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    ov = dict(NADIR, prf_hz=10000, scan_freq_hz=10, range_noise_m=0.05)
+    sv = _survey(ov, _line(-0.6, 0.6, 300.0), speed=1.0)
+    res = simulate(sc, sv, workers=1, seed=3)
+    z = res.points["xyz"][:, 2]
+    assert len(z) >= 10000
+    assert np.std(z, ddof=1) == pytest.approx(0.05, rel=0.03)
+    assert abs(z.mean()) < 3 * 0.05 / np.sqrt(len(z)) + 1e-4
+    # deterministic: same seed, same numbers; other seed, other numbers
+    again = simulate(sc, sv, workers=2, seed=3)
+    assert np.array_equal(again.points["xyz"], res.points["xyz"])
+    other = simulate(sc, sv, workers=1, seed=4)
+    assert not np.array_equal(other.points["xyz"], res.points["xyz"])
+
+
+def test_threshold_removes_weakest_first():
+    rng = np.random.default_rng(0)
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-30, -30, 30, 30], Material(0.2))
+    cen = rng.uniform([-3, -3, 5], [3, 3, 15], size=(400, 3))
+    ijk = np.unique(np.floor(cen / 0.5).astype(int), axis=0)
+    sc.add_voxels(2, ijk, np.zeros(3), 0.5, material=Material(0.6))
+    ov = {"prf_hz": 20000, "scan_freq_hz": 40, "scan_angle_deg": 10.0, "max_scan_angle_deg": 10.0,
+          "range_min_m": 0.0}
+    sv = _survey(ov, _line(-4, 4, 80.0), speed=4.0)
+    base = simulate(sc, sv, workers=1, keep_hits=True)
+    amp = base.points["amplitude"]
+    assert len(amp) > 1000
+    parts = dict(object_id=np.array([1, 2]), classification=np.array([2, 1]), reflectance=np.array([0.2, 0.6]),
+                 specularity=np.zeros(2), shininess=np.full(2, 10.0))
+    same = redetect(parts, base.pulses, base.hits, sv)
+    assert np.array_equal(same.points["xyz"], base.points["xyz"])
+    u = np.unique(amp.astype(np.float64))
+    k = np.searchsorted(u, np.quantile(u, 0.3))
+    thr = 0.5 * (u[k] + u[k + 1])  # between two distinct amplitudes (no ties at the threshold)
+    sv_t = _survey(dict(ov, min_energy=thr), _line(-4, 4, 80.0), speed=4.0)
+    cut = redetect(parts, base.pulses, base.hits, sv_t)
+    assert (cut.points["amplitude"] >= thr).all()
+    kept = set(zip(base.points["pulse"][amp >= thr].tolist(), np.round(base.points["xyz"][amp >= thr, 2], 6)))
+    now = set(zip(cut.points["pulse"].tolist(), np.round(cut.points["xyz"][:, 2], 6)))
+    assert now == kept  # exactly the returns below the threshold were removed

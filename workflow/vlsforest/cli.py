@@ -1,0 +1,63 @@
+"""The ``vlsforest`` command line: ``vlsforest <stage> …``.
+
+Each stage lives in :mod:`vlsforest.commands` as a module with a ``register(subparsers)``
+function that adds its sub-command and sets ``func`` to a callable taking the parsed
+arguments. Deliberate errors (:class:`vlsforest.errors.VlsforestError`) end in one line on
+stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from vlsforest import __version__
+from vlsforest.errors import VlsforestError
+
+#: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
+COMMANDS = ("demo", "plan", "simulate", "detect", "summarize-sims", "metrics")
+
+
+def module_name(command: str) -> str:
+    """Module of a sub-command (``summarize-sims`` → ``vlsforest.commands.summarize_sims``)."""
+    return f"vlsforest.commands.{command.replace('-', '_')}"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the argument parser with every registered stage."""
+    parser = argparse.ArgumentParser(
+        prog="vlsforest",
+        description="Virtual laser scanning of voxelised forests (Weiser et al. 2021, reproduced).",
+    )
+    parser.add_argument("--version", action="version", version=f"vlsforest {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="<stage>")
+    sub.required = True
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(module_name(name))
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name(name):
+                continue  # stage not implemented in this checkout
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        rc = args.func(args)
+    except VlsforestError as exc:
+        print(f"vlsforest {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    return int(rc or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

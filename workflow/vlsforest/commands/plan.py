@@ -1,0 +1,62 @@
+"""``vlsforest plan --scene SCENE.yaml --scenario-json '{…}' -o SURVEY.yaml`` — flight planning."""
+
+from __future__ import annotations
+
+import json
+
+import yaml
+
+from vlsforest.errors import ConfigError
+
+
+def register(sub) -> None:
+    """Add the ``plan`` sub-command."""
+    p = sub.add_parser("plan", help="plan a survey (flight lines) covering a scene",
+                       description="Write SURVEY.yaml with flight lines that cover the scene's ground plane "
+                                   "(or its bounds), from a scenario: scanner, pattern, altitude, speed, "
+                                   "line spacing (see vlsforest.sim.planning).")
+    p.add_argument("--scene", required=True, help="SCENE.yaml whose extent to cover")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scenario", help="scenario YAML file")
+    src.add_argument("--scenario-json", help="scenario as a JSON object")
+    p.add_argument("--seed", type=int, default=None, help="survey seed (noise)")
+    p.add_argument("-o", "--output", required=True, help="SURVEY.yaml to write")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Execute ``vlsforest plan``."""
+    from pathlib import Path
+
+    from vlsforest.sim.planning import plan_survey
+    from vlsforest.sim.scene import Scene
+    from vlsforest.sim.survey import survey_from_dict
+
+    if args.scenario_json is not None:
+        try:
+            scenario = json.loads(args.scenario_json)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--scenario-json is not valid JSON: {exc}") from None
+    else:
+        path = Path(args.scenario)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such scenario file")
+        scenario = yaml.safe_load(path.read_text())
+    if not isinstance(scenario, dict):
+        raise ConfigError("the scenario must be a mapping")
+    scene = Scene.from_yaml(args.scene)
+    planes = [p for p in scene._planes]
+    if planes:
+        ext = planes[0].extent
+        ground = planes[0].z
+    else:
+        lo, hi = scene.bounds()
+        ext, ground = (lo[0], lo[1], hi[0], hi[1]), lo[2]
+    survey = plan_survey(scenario, ext, ground)
+    if args.seed is not None:
+        survey["seed"] = int(args.seed)
+    survey_from_dict(survey)  # validate before writing
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(survey, sort_keys=False))
+    return 0

@@ -1,0 +1,183 @@
+"""LAS/LAZ input and output.
+
+Point clouds travel through vlsforest as :class:`PointCloud`: float64 ``xyz`` plus a dict of
+per-point attribute arrays named like laspy's dimensions (``intensity``, ``return_number``,
+``number_of_returns``, ``gps_time``, ``point_source_id``, ``scan_angle`` in degrees,
+``classification``) and any extra dimensions (``object_id``, ``amplitude``, ``tree_id`` …).
+
+Files are written as LAS 1.4, point format 6 (LAZ when the name ends in ``.laz``) with a fixed
+scale of 0.1 mm and an offset rounded to whole metres, so that the same points give the same
+bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from vlsforest.errors import InputDataError
+
+#: standard point-format-6 dimensions that :func:`write_las` fills from ``PointCloud.attrs``
+_STANDARD = {
+    "intensity": np.uint16,
+    "return_number": np.uint8,
+    "number_of_returns": np.uint8,
+    "gps_time": np.float64,
+    "point_source_id": np.uint16,
+    "classification": np.uint8,
+    "user_data": np.uint8,
+}
+_SCALE = 1e-4
+
+
+@dataclass
+class PointCloud:
+    """Points with attributes.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (n, 3), float64
+        Coordinates.
+    attrs : dict of str to ndarray
+        Per-point attributes, each of length n.
+    """
+
+    xyz: np.ndarray
+    attrs: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        for k, v in self.attrs.items():
+            if len(v) != len(self.xyz):
+                raise InputDataError(f"attribute {k!r} has {len(v)} values for {len(self.xyz)} points")
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def subset(self, mask_or_index) -> "PointCloud":
+        """Return the points selected by a boolean mask or an index array."""
+        return PointCloud(self.xyz[mask_or_index], {k: v[mask_or_index] for k, v in self.attrs.items()})
+
+    @staticmethod
+    def concat(clouds: list["PointCloud"]) -> "PointCloud":
+        """Concatenate clouds; attributes missing in any cloud are dropped."""
+        clouds = list(clouds)
+        if not clouds:
+            return PointCloud(np.zeros((0, 3)))
+        keys = set(clouds[0].attrs)
+        for c in clouds[1:]:
+            keys &= set(c.attrs)
+        return PointCloud(
+            np.concatenate([c.xyz for c in clouds]),
+            {k: np.concatenate([c.attrs[k] for c in clouds]) for k in sorted(keys)},
+        )
+
+
+def read_las(path, require: tuple[str, ...] = (), allow_empty: bool = False) -> PointCloud:
+    """Read a LAS/LAZ file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    require : tuple of str
+        Dimension names that must be present (standard or extra); a missing one is an error.
+    allow_empty : bool
+        Whether a file without points is acceptable.
+
+    Returns
+    -------
+    PointCloud
+        ``scan_angle`` is converted to degrees whatever the point format.
+
+    Raises
+    ------
+    InputDataError
+        When the file is missing, unreadable, empty, holds NaN/inf coordinates or lacks a
+        required dimension. The message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputDataError(f"{path}: no such file")
+    try:
+        las = laspy.read(path)
+    except Exception as exc:  # laspy/lazrs raise many types for corrupt data
+        raise InputDataError(f"{path}: not a readable LAS/LAZ file ({exc})") from None
+    xyz = np.column_stack([np.asarray(las.x, float), np.asarray(las.y, float), np.asarray(las.z, float)])
+    if len(xyz) == 0 and not allow_empty:
+        raise InputDataError(f"{path}: the file holds no points")
+    if not np.isfinite(xyz).all():
+        raise InputDataError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates")
+    names = set(las.point_format.dimension_names)
+    missing = [r for r in require if r not in names]
+    if missing:
+        raise InputDataError(f"{path}: missing LAS dimension(s) {', '.join(missing)}")
+    attrs = {}
+    for name in las.point_format.dimension_names:
+        if name in ("X", "Y", "Z"):
+            continue
+        arr = np.asarray(las[name])
+        if name == "scan_angle":  # point formats 6-10: 0.006 degree units
+            arr = arr.astype(np.float64) * 0.006
+        elif name == "scan_angle_rank":
+            arr = arr.astype(np.float64)
+        attrs[name] = arr
+    if "scan_angle" not in attrs and "scan_angle_rank" in attrs:
+        attrs["scan_angle"] = attrs.pop("scan_angle_rank")
+    return PointCloud(xyz, attrs)
+
+
+def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
+    """Write a cloud as LAS 1.4 point format 6 (LAZ if ``path`` ends in ``.laz``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; parent folders are created.
+    cloud : PointCloud
+        Points. Standard attributes (``intensity``, ``return_number``, ``number_of_returns``,
+        ``gps_time``, ``point_source_id``, ``classification``, ``user_data``, ``scan_angle`` in
+        degrees) fill the standard fields; every other attribute becomes an extra dimension
+        of its own dtype.
+    extra : dict, optional
+        Further extra dimensions (name to array).
+
+    Returns
+    -------
+    Path
+        The path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    xyz = cloud.xyz
+    if len(xyz):
+        header.offsets = np.floor(xyz.min(axis=0))
+    else:
+        header.offsets = np.zeros(3)
+    header.scales = np.array([_SCALE, _SCALE, _SCALE])
+    attrs = dict(cloud.attrs)
+    if extra:
+        attrs.update(extra)
+    for name, arr in attrs.items():
+        if name in _STANDARD or name == "scan_angle":
+            continue
+        arr = np.asarray(arr)
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=arr.dtype))
+    las = laspy.LasData(header)
+    las.x = xyz[:, 0]
+    las.y = xyz[:, 1]
+    las.z = xyz[:, 2]
+    for name, arr in attrs.items():
+        arr = np.asarray(arr)
+        if name == "scan_angle":
+            las.scan_angle = np.clip(np.round(arr / 0.006), -30000, 30000).astype(np.int16)
+        elif name in _STANDARD:
+            las[name] = arr.astype(_STANDARD[name])
+        else:
+            las[name] = arr
+    las.write(path)
+    return path

@@ -1,0 +1,421 @@
+"""The simulation loop: pulses → sub-rays → nearest hits → energy → waveform → returns → LAS.
+
+Work is split into fixed blocks of pulse slots (``block_slots``, default 20 000); block ``b``
+draws its range noise from ``numpy.random.default_rng([seed, b])``, so the output depends
+only on the scene, the survey and the seed — not on the number of worker processes. Blocks
+run in worker processes (fork) because Embree holds the GIL; results are gathered in block
+order.
+
+Detector options (the SURVEY.yaml ``detector:`` mapping)::
+
+    detector:
+      mode: physical          # or helios_v1: defaults of the switches below
+      peak_rule: physical     # physical | helios            (quirk 3, isolated echoes)
+      ring_scale: helios      # helios | physical            (quirk 2, outer ring placement)
+      two_way_time: false     # one-way time axis as HELIOS++ (quirk 1)
+      dedupe_ranges: false    # drop bit-identical sub-ray ranges (quirk 5)
+      atmosphere_convention: physical   # physical | helios  (quirk 12)
+      return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
+
+``mode: helios_v1`` sets ``peak_rule: helios, ring_scale: helios, dedupe_ranges: true,
+atmosphere_convention: helios``; ``mode: physical`` (default) sets ``peak_rule: physical,
+ring_scale: helios, dedupe_ranges: false, atmosphere_convention: physical``. The ring scale
+stays at the HELIOS++ placement in both modes because the study's tuned window sizes were
+found with it; ``ring_scale: physical`` is the switch for the nominal beam extent.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vlsforest.errors import ConfigError
+from vlsforest.sim.beam import gaussian_weight, subray_directions, subray_pattern
+from vlsforest.sim.waveform import atmospheric_alpha, detect_returns, subray_energy
+
+_MODES = {
+    "physical": dict(peak_rule="physical", ring_scale="helios", two_way_time=False, dedupe_ranges=False,
+                     atmosphere_convention="physical", return_position="axis"),
+    "helios_v1": dict(peak_rule="helios", ring_scale="helios", two_way_time=False, dedupe_ranges=True,
+                      atmosphere_convention="helios", return_position="axis"),
+}
+_CHOICES = {
+    "peak_rule": ("physical", "helios"),
+    "ring_scale": ("helios", "physical"),
+    "atmosphere_convention": ("physical", "helios"),
+    "return_position": ("axis", "weighted"),
+}
+
+
+@dataclass(frozen=True)
+class DetectorOptions:
+    """Resolved detector switches (see the module docstring)."""
+
+    peak_rule: str = "physical"
+    ring_scale: str = "helios"
+    two_way_time: bool = False
+    dedupe_ranges: bool = False
+    atmosphere_convention: str = "physical"
+    return_position: str = "axis"
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "DetectorOptions":
+        """Resolve a ``detector:`` mapping; unknown keys or values raise ConfigError."""
+        d = dict(d or {})
+        mode = d.pop("mode", "physical")
+        if mode not in _MODES:
+            raise ConfigError(f"detector.mode must be one of {sorted(_MODES)}, got {mode!r}")
+        opts = dict(_MODES[mode])
+        for k, v in d.items():
+            if k not in opts:
+                raise ConfigError(f"detector.{k} is not a detector option (known: mode, {', '.join(opts)})")
+            if k in _CHOICES and v not in _CHOICES[k]:
+                raise ConfigError(f"detector.{k} must be one of {list(_CHOICES[k])}, got {v!r}")
+            if k in ("two_way_time", "dedupe_ranges") and not isinstance(v, bool):
+                raise ConfigError(f"detector.{k} must be true or false, got {v!r}")
+            opts[k] = v
+        return cls(**opts)
+
+
+@dataclass
+class SimulationResult:
+    """What a simulation produced.
+
+    Attributes
+    ----------
+    points : dict of ndarray
+        Per return: ``xyz`` (n, 3), ``intensity``, ``amplitude``, ``return_number``,
+        ``number_of_returns``, ``gps_time``, ``scan_angle``, ``point_source_id``,
+        ``object_id``, ``classification``, ``pulse`` (global pulse slot).
+    pulses : dict of ndarray
+        Per emitted pulse: ``slot``, ``gps_time``, ``origin``, ``direction``, ``scan_dir``,
+        ``scan_angle``, ``source_id``, ``n_returns``.
+    hits : dict of ndarray or None
+        Per sub-ray hit (when requested): ``pulse`` (row in ``pulses``), ``subray``,
+        ``range``, ``cos_inc``, ``part``.
+    timings : dict
+        Seconds spent in ``total``, and counts ``n_pulses``, ``n_rays``, ``n_points``.
+    """
+
+    points: dict
+    pulses: dict
+    hits: dict | None
+    timings: dict = field(default_factory=dict)
+
+
+class _Job:
+    """Everything a worker needs, shared with forked workers through a module global."""
+
+    def __init__(self, scene, survey, seed, keep_hits, block_slots):
+        self.scene = scene
+        self.survey = survey
+        self.seed = int(seed)
+        self.keep_hits = keep_hits
+        self.block_slots = int(block_slots)
+        sc = survey.scanner
+        self.opts = DetectorOptions.from_dict(survey.detector)
+        self.pattern = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad, sc.beam_orientation_deg,
+                                      ring_scale=self.opts.ring_scale)
+        self.atm_alpha = (atmospheric_alpha(sc.wavelength_nm, sc.visibility_km, self.opts.atmosphere_convention)
+                          if sc.atmosphere else 0.0)
+        mats = [p.material for p in scene.parts]
+        self.refl_pct = np.array([m.reflectance * 100.0 for m in mats] + [0.0])
+        self.spec = np.array([m.specularity for m in mats] + [0.0])
+        self.shin = np.array([m.shininess for m in mats] + [1.0])
+        self.object_id = np.array([p.object_id for p in scene.parts] + [0], dtype=np.int32)
+        self.classification = np.array([p.classification for p in scene.parts] + [0], dtype=np.uint8)
+
+
+_JOB: _Job | None = None
+
+
+def _init_worker():
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except Exception:  # pragma: no cover - numba always present, threads may be fixed
+        pass
+
+
+def _run_block(b: int):
+    job = _JOB
+    start = b * job.block_slots
+    stop = min(start + job.block_slots, job.survey.n_slots)
+    batch = job.survey.pulses(start, stop)
+    return _trace_and_detect(job, batch, np.random.default_rng([job.seed, b]))
+
+
+def _trace_and_detect(job: _Job, batch, rng):
+    m = len(batch)
+    pat = job.pattern
+    ns = pat.n
+    if m == 0:
+        return _empty_block(job)
+    dirs = subray_directions(batch.direction, batch.scan_dir, pat).reshape(-1, 3)
+    origins = np.repeat(batch.origin, ns, axis=0)
+    t, part, cos_inc = job.scene.trace(origins, dirs)
+    hit = np.isfinite(t) & (t >= job.survey.scanner.range_min_m)
+    idx = np.flatnonzero(hit)  # pulse-major order: pulse = idx // ns
+    hpulse = idx // ns
+    hsub = (idx % ns).astype(np.int16)
+    hrange = t[idx]
+    hpart = part[idx]
+    hcos = cos_inc[idx]
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.bincount(hpulse, minlength=m), out=ptr[1:])
+    hits = dict(pulse=hpulse.astype(np.int64), subray=hsub, range=hrange, cos_inc=hcos.astype(np.float32),
+                part=hpart.astype(np.int32))
+    points, n_ret = _detect(job, batch, ptr, hits, rng)
+    pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
+                  scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
+                  n_returns=n_ret)
+    return points, pulses, (hits if job.keep_hits else None), m * ns
+
+
+def _detect(job: _Job, batch, ptr, hits, rng):
+    """Energy, waveform, peaks, noise and positions for a batch with its sub-ray hits."""
+    sc = job.survey.scanner
+    pat = job.pattern
+    hpart = hits["part"]
+    w = gaussian_weight(pat.frac[hits["subray"]], hits["range"], sc.range_min_m, sc.beam_quality_factor)
+    energy = subray_energy(hits["range"], w, hits["cos_inc"], job.refl_pct[hpart], pat.n,
+                           average_power_w=sc.average_power_w, receiver_diameter_m=sc.receiver_diameter_m,
+                           optical_efficiency=sc.optical_efficiency, specularity=job.spec[hpart],
+                           shininess=job.shin[hpart], atm_alpha=job.atm_alpha)
+    o = job.opts
+    det = detect_returns(ptr, hits["range"], energy, pulse_length_ns=sc.pulse_length_ns,
+                         bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns, min_energy=sc.min_energy,
+                         max_returns=sc.max_returns, peak_rule=o.peak_rule, two_way_time=o.two_way_time,
+                         dedupe_ranges=o.dedupe_ranges)
+    p = det["pulse"]
+    rng_ret = det["range"]
+    if sc.range_noise_m > 0:
+        rng_ret = rng_ret + rng.normal(0.0, sc.range_noise_m, size=len(rng_ret))
+    if o.return_position == "axis":
+        xyz = batch.origin[p] + rng_ret[:, None] * batch.direction[p]
+    else:
+        xyz = _weighted_positions(job, batch, ptr, hits, energy, det, rng_ret)
+    hp = hpart[det["hit"]]
+    amp = det["amplitude"]
+    points = dict(xyz=xyz, amplitude=amp.astype(np.float32),
+                  intensity=np.clip(np.round(amp), 0, 65535).astype(np.uint16),
+                  return_number=np.minimum(det["return_number"], 15).astype(np.uint8),
+                  number_of_returns=np.minimum(det["number_of_returns"], 15).astype(np.uint8),
+                  gps_time=batch.gps_time[p], scan_angle=batch.scan_angle_deg[p],
+                  point_source_id=batch.source_id[p], object_id=job.object_id[hp],
+                  classification=job.classification[hp], pulse=batch.slot[p])
+    return points, det["n_returns"]
+
+
+def _weighted_positions(job, batch, ptr, hits, energy, det, ranges):
+    """Energy-weighted mean position of the sub-ray hits that belong to each return."""
+    pat = job.pattern
+    hp = hits["pulse"]
+    dirs = _subray_dir(batch, pat, hp, hits["subray"])
+    pos = batch.origin[hp] + hits["range"][:, None] * dirs
+    # assign each hit to the return of its pulse nearest in range
+    ret_of_pulse_start = np.zeros(len(batch) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(det["pulse"], minlength=len(batch)), out=ret_of_pulse_start[1:])
+    out = np.empty((len(ranges), 3))
+    acc = np.zeros((len(ranges), 3))
+    wsum = np.zeros(len(ranges))
+    has_ret = ret_of_pulse_start[hp + 1] > ret_of_pulse_start[hp]
+    best = np.full(len(hp), -1, dtype=np.int64)
+    bestd = np.full(len(hp), np.inf)
+    nmax = int(np.max(np.diff(ret_of_pulse_start))) if len(ranges) else 0
+    for k in range(nmax):
+        r = ret_of_pulse_start[hp] + k
+        ok = has_ret & (r < ret_of_pulse_start[hp + 1])
+        dd = np.where(ok, np.abs(hits["range"] - det["range"][np.minimum(r, len(ranges) - 1)]), np.inf)
+        upd = dd < bestd
+        bestd[upd] = dd[upd]
+        best[upd] = r[upd]
+    sel = best >= 0
+    np.add.at(acc, best[sel], pos[sel] * energy[sel, None])
+    np.add.at(wsum, best[sel], energy[sel])
+    p = det["pulse"]
+    axis = batch.origin[p] + ranges[:, None] * batch.direction[p]
+    good = wsum > 0
+    out[good] = acc[good] / wsum[good, None]
+    out[~good] = axis[~good]
+    # range noise moves the point along the central beam direction
+    shift = ranges - det["range"]
+    out += shift[:, None] * batch.direction[p]
+    return out
+
+
+def _subray_dir(batch, pattern, pulse_idx, subray_idx):
+    d = batch.direction[pulse_idx]
+    e1 = batch.scan_dir[pulse_idx]
+    e2 = np.cross(d, e1)
+    tt = np.tan(pattern.offsets[subray_idx])
+    v = d + tt[:, 0, None] * e1 + tt[:, 1, None] * e2
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _empty_block(job):
+    pts = dict(xyz=np.zeros((0, 3)), amplitude=np.zeros(0, np.float32), intensity=np.zeros(0, np.uint16),
+               return_number=np.zeros(0, np.uint8), number_of_returns=np.zeros(0, np.uint8),
+               gps_time=np.zeros(0), scan_angle=np.zeros(0), point_source_id=np.zeros(0, np.uint16),
+               object_id=np.zeros(0, np.int32), classification=np.zeros(0, np.uint8), pulse=np.zeros(0, np.int64))
+    pulses = dict(slot=np.zeros(0, np.int64), gps_time=np.zeros(0), origin=np.zeros((0, 3)),
+                  direction=np.zeros((0, 3)), scan_dir=np.zeros((0, 3)), scan_angle=np.zeros(0),
+                  source_id=np.zeros(0, np.uint16), n_returns=np.zeros(0, np.int16))
+    hits = dict(pulse=np.zeros(0, np.int64), subray=np.zeros(0, np.int16), range=np.zeros(0),
+                cos_inc=np.zeros(0, np.float32), part=np.zeros(0, np.int32))
+    return pts, pulses, (hits if job.keep_hits else None), 0
+
+
+def _concat(dicts):
+    return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]}
+
+
+def simulate(scene, survey, seed: int | None = None, workers: int | None = None, keep_hits: bool = False,
+             block_slots: int = 20000, progress: bool = False) -> SimulationResult:
+    """Run a survey over a scene.
+
+    Parameters
+    ----------
+    scene : vlsforest.sim.scene.Scene
+    survey : vlsforest.sim.survey.Survey
+    seed : int, optional
+        Seed of the range noise; defaults to the survey's ``seed``.
+    workers : int, optional
+        Worker processes (default: number of CPUs, at most the number of blocks).
+    keep_hits : bool
+        Also return every sub-ray hit (for :func:`redetect`).
+    block_slots : int
+        Pulse slots per block (fixes the random streams; keep it constant to compare runs).
+    progress : bool
+        Print progress to stderr.
+
+    Returns
+    -------
+    SimulationResult
+    """
+    global _JOB
+    t0 = time.perf_counter()
+    seed = survey.seed if seed is None else seed
+    job = _Job(scene, survey, seed, keep_hits, block_slots)
+    n_blocks = -(-survey.n_slots // job.block_slots)
+    scene.grids  # build voxel grids once, before forking
+    workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
+    _JOB = job
+    results = []
+    try:
+        if workers <= 1 or n_blocks <= 1:
+            it = map(_run_block, range(n_blocks))
+            pool = None
+        else:
+            pool = mp.get_context("fork").Pool(workers, initializer=_init_worker)
+            it = pool.imap(_run_block, range(n_blocks))
+        for k, r in enumerate(it):
+            results.append(r)
+            if progress and (k % max(1, n_blocks // 20) == 0 or k == n_blocks - 1):
+                print(f"\rsimulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %)",
+                      end="", file=sys.stderr, flush=True)
+        if pool is not None:
+            pool.close()
+            pool.join()
+    finally:
+        _JOB = None
+    if progress:
+        print(file=sys.stderr)
+    if not results:
+        results = [_empty_block(job)]
+    points = _concat([r[0] for r in results])
+    pulses = _concat([r[1] for r in results])
+    hits = None
+    if keep_hits:
+        offs = np.cumsum([0] + [len(r[1]["slot"]) for r in results[:-1]])
+        parts = []
+        for off, r in zip(offs, results):
+            h = dict(r[2])
+            h["pulse"] = h["pulse"] + off
+            parts.append(h)
+        hits = _concat(parts)
+    n_rays = int(sum(r[3] for r in results))
+    timings = dict(total=time.perf_counter() - t0, n_pulses=len(pulses["slot"]), n_rays=n_rays,
+                   n_points=len(points["xyz"]))
+    return SimulationResult(points, pulses, hits, timings)
+
+
+class _StoredBatch:
+    """A pulse batch rebuilt from a stored pulse table (for :func:`redetect`)."""
+
+    def __init__(self, pulses: dict, sel):
+        self.slot = pulses["slot"][sel]
+        self.gps_time = pulses["gps_time"][sel]
+        self.origin = pulses["origin"][sel]
+        self.direction = pulses["direction"][sel]
+        self.scan_dir = pulses["scan_dir"][sel]
+        self.scan_angle_deg = pulses["scan_angle"][sel]
+        self.source_id = pulses["source_id"][sel]
+
+    def __len__(self):
+        return len(self.slot)
+
+
+def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | None = None,
+             block_slots: int = 20000) -> SimulationResult:
+    """Re-run detection (energy, waveform, peaks, noise) on stored sub-ray hits — no tracing.
+
+    The beam geometry (divergence, sample quality) must be the one the hits were traced
+    with; detection settings (window, bins, pulse length, threshold, noise, max returns,
+    reflectances) may differ. With unchanged settings and seed the result equals the
+    original simulation bit for bit.
+
+    Parameters
+    ----------
+    scene_parts : dict
+        ``object_id``, ``classification``, ``reflectance``, ``specularity``, ``shininess``
+        arrays per scene part (as stored by :func:`save_hits`).
+    pulses, hits : dict
+        As in :class:`SimulationResult`.
+    survey : vlsforest.sim.survey.Survey
+        Detection settings come from its scanner and ``detector:`` mapping.
+    seed : int, optional
+        Noise seed (default: the survey's).
+    block_slots : int
+        Must equal the value used when the hits were traced for identical noise streams.
+    """
+    from types import SimpleNamespace
+
+    t0 = time.perf_counter()
+    seed = survey.seed if seed is None else seed
+    fake_scene = SimpleNamespace(parts=[
+        SimpleNamespace(material=SimpleNamespace(reflectance=r, specularity=s, shininess=h), object_id=o,
+                        classification=c)
+        for o, c, r, s, h in zip(scene_parts["object_id"], scene_parts["classification"],
+                                 scene_parts["reflectance"], scene_parts["specularity"], scene_parts["shininess"])])
+    job = _Job(fake_scene, survey, seed, False, block_slots)
+    blocks = pulses["slot"] // job.block_slots
+    hit_ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=hit_ptr[1:])
+    pts, n_ret = [], []
+    for b in np.unique(blocks):
+        rows = np.flatnonzero(blocks == b)
+        r0, r1 = rows[0], rows[-1] + 1
+        batch = _StoredBatch(pulses, slice(r0, r1))
+        h0, h1 = hit_ptr[r0], hit_ptr[r1]
+        h = {k: v[h0:h1] for k, v in hits.items()}
+        h["pulse"] = h["pulse"] - r0
+        ptr = hit_ptr[r0:r1 + 1] - h0
+        p, n = _detect(job, batch, ptr, h, np.random.default_rng([job.seed, int(b)]))
+        pts.append(p)
+        n_ret.append(n)
+    if not pts:
+        pts = [_empty_block(job)[0]]
+        n_ret = [np.zeros(0, np.int16)]
+    points = _concat(pts)
+    new_pulses = dict(pulses)
+    new_pulses["n_returns"] = np.concatenate(n_ret)
+    return SimulationResult(points, new_pulses, hits, dict(total=time.perf_counter() - t0,
+                                                           n_pulses=len(pulses["slot"]), n_rays=0,
+                                                           n_points=len(points["xyz"])))
