@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError
@@ -145,10 +146,25 @@ def subray_directions(direction, scan_dir, pattern: SubrayPattern) -> np.ndarray
     ndarray, shape (m, n, 3)
         Unit sub-ray directions; sub-ray 0 is the central ray.
     """
-    d = np.asarray(direction, dtype=np.float64)
-    e1 = np.asarray(scan_dir, dtype=np.float64)
-    e2 = np.cross(d, e1)
-    t = np.tan(pattern.offsets)
-    out = d[:, None, :] + t[None, :, 0, None] * e1[:, None, :] + t[None, :, 1, None] * e2[:, None, :]
-    out /= np.linalg.norm(out, axis=2, keepdims=True)
+    d = np.ascontiguousarray(direction, dtype=np.float64)
+    e1 = np.ascontiguousarray(scan_dir, dtype=np.float64)
+    out = np.empty((len(d), pattern.n, 3))
+    _fan(d, e1, np.ascontiguousarray(np.tan(pattern.offsets)), out)
     return out
+
+
+@numba.njit(cache=True)
+def _fan(d, e1, tan_off, out):
+    for p in range(d.shape[0]):
+        dx, dy, dz = d[p, 0], d[p, 1], d[p, 2]
+        ax, ay, az = e1[p, 0], e1[p, 1], e1[p, 2]
+        bx, by, bz = dy * az - dz * ay, dz * ax - dx * az, dx * ay - dy * ax  # d × e1
+        for k in range(tan_off.shape[0]):
+            u, v = tan_off[k, 0], tan_off[k, 1]
+            x = dx + u * ax + v * bx
+            y = dy + u * ay + v * by
+            z = dz + u * az + v * bz
+            n = np.sqrt(x * x + y * y + z * z)
+            out[p, k, 0] = x / n
+            out[p, k, 1] = y / n
+            out[p, k, 2] = z / n

@@ -27,6 +27,8 @@ found with it; ``ring_scale: physical`` is the switch for the nominal beam exten
 from __future__ import annotations
 
 import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import os
 import sys
 import time
@@ -34,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlsforest.errors import ConfigError
+from vlsforest.errors import ConfigError, VlsforestError
 from vlsforest.sim.beam import gaussian_weight, subray_directions, subray_pattern
 from vlsforest.sim.waveform import atmospheric_alpha, detect_returns, subray_energy
 
@@ -129,18 +131,19 @@ class _Job:
         self.shin = np.array([m.shininess for m in mats] + [1.0])
         self.object_id = np.array([p.object_id for p in scene.parts] + [0], dtype=np.int32)
         self.classification = np.array([p.classification for p in scene.parts] + [0], dtype=np.uint8)
+        self.max_offset = float(np.abs(self.pattern.offsets).max()) * np.sqrt(2.0)
+        if hasattr(scene, "bounds"):
+            self.box_lo, self.box_hi = scene.bounds()
 
 
 _JOB: _Job | None = None
 
 
 def _init_worker():
-    try:
-        import numba
+    # numba's default (workqueue) threading layer is not fork-safe: workers trace serially
+    from vlsforest.sim import _voxelgrid
 
-        numba.set_num_threads(1)
-    except Exception:  # pragma: no cover - numba always present, threads may be fixed
-        pass
+    _voxelgrid.SERIAL = True
 
 
 def _run_block(b: int):
@@ -157,12 +160,16 @@ def _trace_and_detect(job: _Job, batch, rng):
     ns = pat.n
     if m == 0:
         return _empty_block(job)
-    dirs = subray_directions(batch.direction, batch.scan_dir, pat).reshape(-1, 3)
-    origins = np.repeat(batch.origin, ns, axis=0)
+    # like HELIOS++, pulses whose beam cone misses the scene's bounding box are not traced
+    live = np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi,
+                                          job.max_offset))
+    nl = len(live)
+    dirs = subray_directions(batch.direction[live], batch.scan_dir[live], pat).reshape(-1, 3)
+    origins = np.repeat(batch.origin[live], ns, axis=0)
     t, part, cos_inc = job.scene.trace(origins, dirs)
     hit = np.isfinite(t) & (t >= job.survey.scanner.range_min_m)
-    idx = np.flatnonzero(hit)  # pulse-major order: pulse = idx // ns
-    hpulse = idx // ns
+    idx = np.flatnonzero(hit)  # pulse-major order: live pulse = idx // ns
+    hpulse = live[idx // ns]
     hsub = (idx % ns).astype(np.int16)
     hrange = t[idx]
     hpart = part[idx]
@@ -175,7 +182,31 @@ def _trace_and_detect(job: _Job, batch, rng):
     pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
                   scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
                   n_returns=n_ret)
-    return points, pulses, (hits if job.keep_hits else None), m * ns
+    return points, pulses, (hits if job.keep_hits else None), nl * ns
+
+
+def _beam_meets_box(origin, direction, lo, hi, max_offset):
+    """Whether the cone of half-angle ``max_offset`` around each central ray meets the box."""
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return np.zeros(len(origin), dtype=bool)
+    centre = 0.5 * (lo + hi)
+    half_diag = 0.5 * np.linalg.norm(hi - lo)
+    reach = np.linalg.norm(origin - centre, axis=1) + half_diag
+    pad = np.tan(max_offset) * reach + 1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / direction
+        t1 = (lo - pad[:, None] - origin) * inv
+        t2 = (hi + pad[:, None] - origin) * inv
+    tn = np.fmin(t1, t2)
+    tf = np.fmax(t1, t2)
+    # parallel axes: inside the slab → unbounded, else no intersection
+    par = direction == 0
+    inside = (origin >= lo - pad[:, None]) & (origin <= hi + pad[:, None])
+    tn = np.where(par, np.where(inside, -np.inf, np.inf), tn)
+    tf = np.where(par, np.where(inside, np.inf, -np.inf), tf)
+    t_enter = tn.max(axis=1)
+    t_exit = tf.min(axis=1)
+    return (t_exit >= np.maximum(t_enter, 0.0))
 
 
 def _detect(job: _Job, batch, ptr, hits, rng):
@@ -313,17 +344,19 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
             it = map(_run_block, range(n_blocks))
             pool = None
         else:
-            pool = mp.get_context("fork").Pool(workers, initializer=_init_worker)
-            it = pool.imap(_run_block, range(n_blocks))
+            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
+            it = pool.map(_run_block, range(n_blocks))
         for k, r in enumerate(it):
             results.append(r)
             if progress and (k % max(1, n_blocks // 20) == 0 or k == n_blocks - 1):
                 print(f"\rsimulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %)",
                       end="", file=sys.stderr, flush=True)
-        if pool is not None:
-            pool.close()
-            pool.join()
+    except BrokenProcessPool:
+        raise VlsforestError("a simulation worker process died (out of memory?); "
+                             "try fewer workers (--workers 1)") from None
     finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
         _JOB = None
     if progress:
         print(file=sys.stderr)

@@ -1,0 +1,604 @@
+"""Tests of scanner presets, deflectors, platforms and SURVEY.yaml parsing (vlsforest.sim)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from vlsforest.errors import ConfigError
+from vlsforest.sim.scanner import (
+    PRESETS,
+    fwhm_to_1e2,
+    scanner_from_dict,
+    scanner_from_preset,
+    tls_grid,
+    validate_scanner,
+)
+from vlsforest.sim.survey import PulseBatch, load_survey, survey_from_dict
+
+FIELDS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle_deg", "source_id")
+
+
+def custom(deflector, **kw):
+    base = dict(deflector=deflector, prf_hz=1000.0, scan_freq_hz=10.0, scan_angle_deg=30.0,
+                beam_divergence_mrad=0.5)
+    base.update(kw)
+    return base
+
+
+def airborne(scanner, legs=None, speed=10.0, **extra):
+    if legs is None:
+        legs = [{"start": [0.0, 0.0, 100.0], "end": [0.0, 100.0, 100.0]}]
+    d = {"scanner": scanner, "platform": {"type": "linear", "speed_mps": speed, "legs": legs}}
+    d.update(extra)
+    return d
+
+
+def tls_survey(**over):
+    o = {"tls_h_step_deg": 2.0, "tls_v_step_deg": 1.0}
+    o.update(over)
+    return {
+        "scanner": "riegl_vz400",
+        "overrides": o,
+        "platform": {"type": "static", "positions": [
+            {"position": [0.0, 0.0, 1.5]},
+            {"position": [10.0, 0.0, 1.5], "heading_deg": 90.0, "tilt_deg": 30.0},
+        ]},
+    }
+
+
+def all_pulses(s):
+    return s.pulses(0, s.n_slots)
+
+
+def ground_hits(b, ground_z=0.0):
+    t = (ground_z - b.origin[:, 2]) / b.direction[:, 2]
+    return b.origin + t[:, None] * b.direction
+
+
+# --------------------------------------------------------------------------- presets
+
+
+def test_presets_load_and_validate():
+    assert {"riegl_vq780i", "riegl_minivux1uav", "riegl_vz400"} <= set(PRESETS)
+    for name, preset in PRESETS.items():
+        validate_scanner(preset)
+        assert scanner_from_preset(name) == preset
+        assert scanner_from_preset(name, {}) == preset
+    vq = PRESETS["riegl_vq780i"]
+    assert (vq.deflector, vq.prf_hz, vq.scan_freq_hz, vq.scan_angle_deg) == ("polygon", 1e6, 250.0, 30.0)
+    assert vq.beam_divergence_mrad == (0.25, 0.25) and vq.window_size_ns == 1.75
+    uls = PRESETS["riegl_minivux1uav"]
+    assert (uls.deflector, uls.prf_hz, uls.scan_freq_hz, uls.max_scan_angle_deg) == ("rotating", 1e5, 50.0, 90.0)
+    assert uls.beam_divergence_mrad == (0.5, 0.5) and uls.window_size_ns == 1.5
+    tls = PRESETS["riegl_vz400"]
+    assert tls.deflector == "tls" and tls.tls_v_fov_deg == (-40.0, 60.0) and tls.tls_h_fov_deg == (0.0, 360.0)
+
+
+def test_fwhm_to_1e2_matches_a_numeric_gaussian():
+    w = 1.0  # 1/e² radius of I(r) = exp(-2 r² / w²)
+    r = np.linspace(0, 2, 2_000_001)
+    intensity = np.exp(-2 * r**2 / w**2)
+    fwhm = 2 * r[np.argmin(np.abs(intensity - 0.5))]
+    assert fwhm_to_1e2(fwhm) == pytest.approx(2 * w, rel=1e-5)
+    assert np.allclose(fwhm_to_1e2([1.6, 0.5]), [2.718, 0.849], atol=1e-3)
+
+
+def test_overrides_are_coerced():
+    s = scanner_from_preset("riegl_vq780i", {"beam_divergence_mrad": 0.4, "prf_hz": 500_000, "max_returns": 5})
+    assert s.beam_divergence_mrad == (0.4, 0.4) and isinstance(s.prf_hz, float) and s.max_returns == 5
+    s = scanner_from_preset("riegl_minivux1uav", {"beam_divergence_mrad": [1.6, 0.5], "beam_orientation_deg": 90})
+    assert s.beam_divergence_mrad == (1.6, 0.5) and s.beam_orientation_deg == 90.0
+    hash(s)  # stays hashable
+
+
+BAD_OVERRIDES = [
+    ("riegl_vq780i", {"prf_hz": 0}, "overrides.prf_hz"),
+    ("riegl_vq780i", {"prf_hz": -5.0}, "overrides.prf_hz"),
+    ("riegl_vq780i", {"prf_hz": "fast"}, "overrides.prf_hz"),
+    ("riegl_vq780i", {"prf_hz": float("nan")}, "overrides.prf_hz"),
+    ("riegl_vq780i", {"scan_freq_hz": 0}, "overrides.scan_freq_hz"),
+    ("riegl_vq780i", {"beam_divergence_mrad": 0}, "overrides.beam_divergence_mrad"),
+    ("riegl_vq780i", {"beam_divergence_mrad": [0.5, 1.6]}, "overrides.beam_divergence_mrad"),
+    ("riegl_vq780i", {"beam_divergence_mrad": [0.5, 0.2, 0.1]}, "overrides.beam_divergence_mrad"),
+    ("riegl_vq780i", {"bin_size_ns": 0}, "overrides.bin_size_ns"),
+    ("riegl_vq780i", {"pulse_length_ns": -1}, "overrides.pulse_length_ns"),
+    ("riegl_vq780i", {"beam_sample_quality": 0}, "overrides.beam_sample_quality"),
+    ("riegl_vq780i", {"beam_sample_quality": 11}, "overrides.beam_sample_quality"),
+    ("riegl_vq780i", {"beam_sample_quality": 2.5}, "overrides.beam_sample_quality"),
+    ("riegl_vq780i", {"window_size_ns": -0.1}, "overrides.window_size_ns"),
+    ("riegl_vq780i", {"scan_angle_deg": 31}, "overrides.scan_angle_deg"),
+    ("riegl_vq780i", {"scan_angle_deg": 0}, "overrides.scan_angle_deg"),
+    ("riegl_vq780i", {"max_returns": -1}, "overrides.max_returns"),
+    ("riegl_vq780i", {"atmosphere": "yes"}, "overrides.atmosphere"),
+    ("riegl_vq780i", {"range_noise_m": -0.01}, "overrides.range_noise_m"),
+    ("riegl_vq780i", {"prf": 5}, "overrides.prf"),
+    ("riegl_vq780i", {"deflector": "conic"}, "overrides.deflector"),
+    ("riegl_vz400", {"tls_v_fov_deg": [60, -40]}, "overrides.tls_v_fov_deg"),
+    ("riegl_vz400", {"tls_h_step_deg": 0}, "overrides.tls_h_step_deg"),
+]
+
+
+@pytest.mark.parametrize("preset,overrides,key", BAD_OVERRIDES)
+def test_bad_overrides_name_the_key(preset, overrides, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        scanner_from_preset(preset, overrides)
+
+
+def test_unknown_preset_lists_known_ones():
+    with pytest.raises(ConfigError) as exc:
+        scanner_from_preset("leica_als80")
+    assert "scanner" in str(exc.value) and "riegl_vq780i" in str(exc.value) and "riegl_vz400" in str(exc.value)
+
+
+def test_custom_scanner_mapping():
+    s = scanner_from_dict(custom("conic", scan_angle_deg=15.0))
+    assert s.deflector == "conic" and s.max_scan_angle_deg == 15.0 and s.beam_divergence_mrad == (0.5, 0.5)
+    with pytest.raises(ConfigError, match=r"scanner\.prf_hz"):
+        scanner_from_dict({"deflector": "conic", "scan_freq_hz": 1, "scan_angle_deg": 5, "beam_divergence_mrad": 1})
+    with pytest.raises(ConfigError, match=r"scanner\.deflector"):
+        scanner_from_dict(custom("spiral"))
+
+
+# --------------------------------------------------------------------------- deflectors
+
+
+def test_polygon_line_has_prf_over_freq_pulses_evenly_spread():
+    s = survey_from_dict(airborne(custom("polygon")))  # 1000 Hz / 10 Hz → 100 slots per line
+    assert s.n_slots == 10 * 1000  # 100 m at 10 m/s = 10 s at 1 kHz
+    b = all_pulses(s)
+    assert len(b) == s.n_slots  # scan angle = device max: everything emitted
+    lines = b.scan_angle_deg.reshape(-1, 100)
+    assert lines.shape[0] == 100
+    expected = -30.0 + 60.0 * np.arange(100) / 100
+    assert np.allclose(lines, expected[None, :], atol=1e-9)
+    assert b.scan_angle_deg.min() == pytest.approx(-30.0) and b.scan_angle_deg.max() < 30.0
+
+
+def test_polygon_loses_pulses_beyond_the_survey_angle():
+    sc = custom("polygon", max_scan_angle_deg=40.0, scan_angle_deg=20.0)
+    s = survey_from_dict(airborne(sc))
+    b = all_pulses(s)
+    assert np.all(np.abs(b.scan_angle_deg) <= 20.0 + 1e-9)
+    # mirror steps 0.8° over [-40, 40): the emitted nodes are -20, -19.2, ..., 20 → 51 of 100 per line
+    assert len(b) / s.n_slots == pytest.approx(20.0 / 40.0, abs=1.0 / 100 + 1e-12)
+    assert len(b) == 51 * 100
+
+
+def test_rotating_window_emits_half_the_slots():
+    s = survey_from_dict(airborne("riegl_minivux1uav", legs=[{"start": [0, 0, 70], "end": [0, 50, 70]}], speed=5.0))
+    assert s.n_slots == 10 * 100_000
+    b = all_pulses(s)
+    assert len(b) / s.n_slots == pytest.approx(0.5, rel=0.01)
+    assert np.all(np.abs(b.scan_angle_deg) <= 90.0 + 1e-9)
+    assert np.all(b.direction[:, 2] <= 1e-12)  # never looks up
+    # per rotation: 2000 slots, angular step 0.18°, nadir included
+    steps = np.diff(b.scan_angle_deg)
+    assert np.allclose(steps[steps > 0], 0.18)
+    # a ±45° survey angle inside the ±90° window: a quarter of the slots
+    s45 = survey_from_dict(airborne("riegl_minivux1uav", overrides={"scan_angle_deg": 45.0},
+                                    legs=[{"start": [0, 0, 70], "end": [0, 50, 70]}], speed=5.0))
+    assert s45.n_slots == s.n_slots
+    assert len(all_pulses(s45)) / s45.n_slots == pytest.approx(0.25, rel=0.01)
+
+
+def test_oscillating_triangle_wave():
+    s = survey_from_dict(airborne(custom("oscillating", scan_angle_deg=20.0)))
+    b = all_pulses(s)
+    assert len(b) == s.n_slots
+    a = b.scan_angle_deg.reshape(-1, 100)  # PRF/scan_freq pulses per line
+    up = -20.0 + 40.0 * np.arange(100) / 100
+    assert np.allclose(a[0::2], up, atol=1e-9) and np.allclose(a[1::2], -up, atol=1e-9)
+    # scan_dir follows the sweep: +x (right) on even lines, -x on odd lines (heading 0)
+    sx = b.scan_dir[:, 0].reshape(-1, 100)
+    assert np.all(sx[0::2] > 0) and np.all(sx[1::2] < 0)
+
+
+def test_conic_directions_lie_on_the_cone():
+    s = survey_from_dict(airborne(custom("conic", scan_angle_deg=15.0, scan_freq_hz=7.0),
+                                  legs=[{"start": [0, 0, 100], "end": [60, 60, 120]}]))
+    b = all_pulses(s)
+    assert len(b) == s.n_slots
+    off_nadir = np.degrees(np.arccos(np.clip(-b.direction[:, 2], -1, 1)))
+    assert np.allclose(off_nadir, 15.0, atol=1e-6)
+    # azimuth covers the full circle evenly
+    az = np.degrees(np.arctan2(b.direction[:, 0], b.direction[:, 1])) % 360
+    counts, _ = np.histogram(az, bins=36, range=(0, 360))
+    assert counts.min() > 0.9 * counts.mean()
+
+
+DEFLECTOR_SURVEYS = {
+    "polygon": lambda: airborne(custom("polygon", max_scan_angle_deg=35.0, scan_freq_hz=13.0)),
+    "rotating": lambda: airborne(custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0)),
+    "oscillating": lambda: airborne(custom("oscillating", scan_freq_hz=11.0)),
+    "conic": lambda: airborne(custom("conic", scan_angle_deg=12.0, scan_freq_hz=3.0)),
+    "tls": tls_survey,
+}
+TWO_LEGS = [
+    {"start": [0, 0, 100], "end": [0, 30, 100]},
+    {"start": [0, 30, 100], "end": [20, 30, 100], "active": False},
+    {"start": [20, 30, 100], "end": [20, 0, 105]},
+]
+
+
+@pytest.mark.parametrize("kind", sorted(DEFLECTOR_SURVEYS))
+@pytest.mark.parametrize("noisy", [False, True])
+def test_pulses_do_not_depend_on_chunking(kind, noisy):
+    d = DEFLECTOR_SURVEYS[kind]()
+    if kind != "tls":
+        d["platform"]["legs"] = TWO_LEGS
+    if noisy:
+        d["trajectory_noise"] = {"position_sigma_m": 0.2, "attitude_sigma_deg": 0.05, "correlation_s": 0.7}
+        d["seed"] = 5
+    s = survey_from_dict(d)
+    whole = all_pulses(s)
+    cuts = np.sort(np.random.default_rng(1).choice(np.arange(1, s.n_slots), 17, replace=False))
+    edges = [0, *cuts.tolist(), s.n_slots]
+    parts = PulseBatch.concat([s.pulses(a, b) for a, b in zip(edges[:-1], edges[1:])])
+    assert len(parts) == len(whole)
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(parts, f), getattr(whole, f), err_msg=f)
+    # scan_dir is a unit vector perpendicular to the unit direction, for every deflector
+    assert np.allclose(np.linalg.norm(whole.direction, axis=1), 1.0, atol=1e-12)
+    assert np.allclose(np.linalg.norm(whole.scan_dir, axis=1), 1.0, atol=1e-12)
+    assert np.abs(np.einsum("ij,ij->i", whole.direction, whole.scan_dir)).max() < 1e-12
+    assert whole.slot.dtype == np.int64 and whole.source_id.dtype == np.uint16
+    assert np.all(np.diff(whole.slot) > 0) and np.all(np.diff(whole.gps_time) > 0)
+
+
+def test_scan_dir_points_the_way_the_beam_sweeps():
+    for kind in ("polygon", "rotating", "conic", "tls"):
+        s = survey_from_dict(DEFLECTOR_SURVEYS[kind]())
+        b = s.pulses(0, 2000)
+        same_line = np.diff(b.slot) == 1
+        step = np.diff(b.direction, axis=0)[same_line]
+        along = np.einsum("ij,ij->i", step, b.scan_dir[:-1][same_line])
+        # most consecutive pulses move along scan_dir (line wraps move backwards)
+        assert np.mean(along > 0) > 0.9, kind
+
+
+# --------------------------------------------------------------------------- platform
+
+
+def test_platform_advances_speed_over_prf_per_slot():
+    s = survey_from_dict(airborne(custom("oscillating"), legs=TWO_LEGS, speed=12.5))
+    prf = 1000.0
+    b = all_pulses(s)
+    first = b.source_id == 1
+    o = b.origin[first]
+    step = np.diff(o, axis=0)
+    assert np.allclose(step, [0.0, 12.5 / prf, 0.0], atol=1e-12)
+    assert np.allclose(np.diff(b.gps_time[first]), 1 / prf, atol=1e-12)
+    assert b.gps_time[0] == 0.0 and np.array_equal(b.origin[0], [0.0, 0.0, 100.0])
+    # slot counts: 30 m and the 30.41 m climbing leg at 12.5 m/s and 1 kHz
+    n1 = math.ceil(30 / 12.5 * prf)
+    n3 = math.ceil(math.hypot(30, 5) / 12.5 * prf)
+    assert s.n_slots == n1 + n3
+    assert s.source_slot_ranges() == [(1, 0, n1), (2, n1, n1 + n3)]
+    # the inactive 20 m leg passes time without slots; source ids count active legs only
+    second = b.source_id == 2
+    t2 = (30 + 20) / 12.5
+    assert b.gps_time[second][0] == pytest.approx(t2, abs=1e-12)
+    assert b.slot[second][0] == n1
+    assert np.array_equal(np.unique(b.source_id), [1, 2])
+    # the climbing leg: origin moves along the leg at speed, attitude stays level
+    u = np.array([0, -30, 5]) / math.hypot(30, 5)
+    dt = b.gps_time[second] - t2
+    assert np.allclose(b.origin[second], np.array([20, 30, 100]) + dt[:, None] * 12.5 * u, atol=1e-9)
+    assert np.allclose(b.direction[second][:, 0] ** 2 + b.direction[second][:, 2] ** 2, 1.0)  # no pitch
+
+
+def test_transit_between_disjoint_legs_takes_time():
+    legs = [{"start": [0, 0, 100], "end": [0, 40, 100]}, {"start": [30, 40, 100], "end": [30, 0, 100]}]
+    s = survey_from_dict(airborne(custom("polygon"), legs=legs, speed=10.0))
+    assert s.legs[1].t_start == pytest.approx((40 + 30) / 10)
+    assert s.duration_s == pytest.approx((40 + 30 + 40) / 10)
+
+
+def test_heading_follows_the_leg():
+    # flying +y (north): across-track sweep along ±x, positive angles to the right (east)
+    s = survey_from_dict(airborne(custom("polygon")))
+    b = all_pulses(s)
+    assert np.all(b.direction[:, 1] == 0.0)
+    assert np.all(np.sign(b.direction[:, 0]) == np.sign(b.scan_angle_deg))
+    assert s.legs[0].heading_deg == 0.0
+    # flying +x (east): sweep along ±y, right of track is south (-y)
+    s = survey_from_dict(airborne(custom("polygon"), legs=[{"start": [0, 0, 100], "end": [100, 0, 100]}]))
+    b = all_pulses(s)
+    assert np.abs(b.direction[:, 0]).max() < 1e-15
+    right = b.scan_angle_deg > 1
+    assert np.all(b.direction[right, 1] < 0)
+    assert s.legs[0].heading_deg == pytest.approx(90.0)
+    # flying south-west: sweep perpendicular to the track
+    s = survey_from_dict(airborne(custom("polygon"), legs=[{"start": [0, 0, 100], "end": [-50, -50, 100]}]))
+    b = all_pulses(s)
+    track = np.array([-1.0, -1.0, 0.0]) / math.sqrt(2)
+    assert np.abs(b.direction @ track).max() < 1e-12
+    assert s.legs[0].heading_deg == pytest.approx(225.0)
+    traj = s.trajectory()
+    assert np.allclose(traj.heading_deg, 225.0) and np.all(traj.roll_deg == 0) and np.all(traj.pitch_deg == 0)
+
+
+def test_flat_ground_footprint_spacing():
+    h, speed = 700.0, 51.0
+    s = survey_from_dict(airborne("riegl_vq780i", legs=[{"start": [0, 0, h], "end": [0, 10.2, h]}], speed=speed))
+    b = all_pulses(s)
+    p = ground_hits(b)
+    # across track at nadir: altitude × angular step (60° / 4000 pulses per line)
+    dtheta = math.radians(60.0 / 4000)
+    line0 = p[:4000]
+    mid = np.argmin(np.abs(line0[:, 0]))
+    spacing = line0[mid + 1, 0] - line0[mid, 0]
+    assert spacing == pytest.approx(h * dtheta, rel=1e-3)
+    # along track: lines are speed/scan_freq apart
+    line1 = p[4000:8000]
+    assert line1[mid, 1] - line0[mid, 1] == pytest.approx(speed / 250.0, rel=1e-9)
+    # within one line the spot drifts by speed/PRF per pulse
+    assert line0[mid + 1, 1] - line0[mid, 1] == pytest.approx(speed / 1e6, rel=1e-6)
+    # swath: ±30° → 2 h tan 30°; the ground points span it up to one across-track step
+    sw = s.swath_width(0.0)
+    assert sw.shape == (1,) and sw[0] == pytest.approx(2 * h * math.tan(math.radians(30)))
+    extent = p[:, 0].max() - p[:, 0].min()
+    assert sw[0] - extent == pytest.approx(0, abs=2 * h * dtheta)
+    assert s.swath_width(100.0)[0] == pytest.approx(2 * 600 * math.tan(math.radians(30)))
+
+
+def test_rotating_swath_is_unbounded():
+    s = survey_from_dict(airborne("riegl_minivux1uav", legs=[{"start": [0, 0, 70], "end": [0, 5, 70]}]))
+    assert math.isinf(s.swath_width(0.0)[0])
+
+
+# --------------------------------------------------------------------------- trajectory and noise
+
+
+def test_trajectory_columns_and_sampling():
+    s = survey_from_dict(airborne(custom("polygon"), legs=TWO_LEGS, speed=12.5))
+    traj = s.trajectory()
+    assert list(traj.columns) == ["gps_time", "x", "y", "z", "roll_deg", "pitch_deg", "heading_deg", "source_id"]
+    t1 = traj[traj.source_id == 1]
+    assert np.allclose(np.diff(t1.gps_time), 0.1)
+    assert t1.gps_time.iloc[-1] == pytest.approx(30 / 12.5)
+    assert np.allclose(t1.y, t1.gps_time * 12.5)
+    t2 = traj[traj.source_id == 2]
+    assert t2.gps_time.iloc[0] == pytest.approx(50 / 12.5)
+    assert np.allclose(t2.heading_deg, 180.0)
+    assert t2.z.iloc[-1] == pytest.approx(105.0)
+
+
+def _noisy_survey(pos=0.5, att=0.2, tau=1.0, seconds=2000.0, seed=3):
+    speed = 10.0
+    legs = [{"start": [0, 0, 500], "end": [0, speed * seconds, 500]}]
+    d = airborne(custom("conic", prf_hz=200.0, scan_freq_hz=5.0), legs=legs, speed=speed, seed=seed)
+    d["trajectory_noise"] = {"position_sigma_m": pos, "attitude_sigma_deg": att, "correlation_s": tau}
+    return survey_from_dict(d), speed
+
+
+def test_trajectory_noise_sigma_and_correlation():
+    s, speed = _noisy_survey()
+    traj = s.trajectory()
+    nominal = s.trajectory(nominal=True)
+    assert np.array_equal(traj.gps_time, nominal.gps_time)
+    dev = {
+        "x": traj.x - nominal.x,
+        "y": traj.y - nominal.y,
+        "z": traj.z - nominal.z,
+        "roll": traj.roll_deg,
+        "pitch": traj.pitch_deg,
+        "yaw": (traj.heading_deg + 180) % 360 - 180,
+    }
+    for name, v in dev.items():
+        sigma = 0.5 if name in "xyz" else 0.2
+        v = np.asarray(v)
+        assert abs(v.mean()) < 0.1 * sigma, name
+        assert np.std(v) == pytest.approx(sigma, rel=0.10), name
+    # autocorrelation at one correlation time ≈ exp(-1/2) (Gaussian kernel), averaged over channels
+    lag = 10  # 1 s at 10 Hz
+    rho = [np.corrcoef(np.asarray(v)[:-lag], np.asarray(v)[lag:])[0, 1] for v in dev.values()]
+    assert np.mean(rho) == pytest.approx(math.exp(-0.5), abs=0.1)
+    # a different seed gives a different realisation
+    s2, _ = _noisy_survey(seed=4)
+    assert not np.allclose(s2.trajectory().x, traj.x)
+
+
+def test_trajectory_noise_moves_pulses_like_the_trajectory():
+    s, speed = _noisy_survey(seconds=20.0)
+    clean, _ = _noisy_survey(pos=0.0, att=0.0, seconds=20.0)
+    traj = s.trajectory()
+    b = all_pulses(s)
+    b0 = all_pulses(clean)
+    # the pulse at t = 0.1·j coincides with trajectory sample j
+    idx = np.searchsorted(b.gps_time, traj.gps_time.to_numpy()[:-1] - 1e-9)
+    assert np.allclose(b.gps_time[idx], traj.gps_time.to_numpy()[:-1], atol=1e-12)
+    assert np.allclose(b.origin[idx], traj[["x", "y", "z"]].to_numpy()[:-1], atol=1e-12)
+    # attitude noise turns the beam by about sqrt(3)·σ at most a few σ
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", b.direction, b0.direction), -1, 1)))
+    assert 0.05 < np.median(ang) < 0.6
+
+
+def test_no_noise_is_exactly_zero():
+    d = airborne(custom("polygon"), seed=9)
+    s = survey_from_dict(d)
+    b = all_pulses(s)
+    assert np.all(b.origin[:, 0] == 0.0) and np.all(b.origin[:, 2] == 100.0)
+    d["trajectory_noise"] = {"position_sigma_m": 0.0, "attitude_sigma_deg": 0.0}
+    b2 = all_pulses(survey_from_dict(d))
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(b, f), getattr(b2, f))
+    traj = s.trajectory()
+    assert np.all(traj.x == 0.0) and np.all(traj.roll_deg == 0.0)
+
+
+# --------------------------------------------------------------------------- TLS
+
+
+def test_tls_slots_and_field_of_view():
+    s = survey_from_dict(tls_survey())
+    sc = s.scanner
+    az, el = tls_grid(sc)
+    assert len(az) == 180 and len(el) == 101  # 360° / 2°, -40…60° in 1° steps
+    assert s.n_slots == 2 * len(az) * len(el)
+    b = all_pulses(s)
+    assert len(b) == s.n_slots
+    first = b.subset(b.source_id == 1)
+    elev = np.degrees(np.arcsin(first.direction[:, 2]))
+    assert elev.min() == pytest.approx(-40.0) and elev.max() == pytest.approx(60.0)
+    assert np.allclose(elev, first.scan_angle_deg)
+    azim = np.degrees(np.arctan2(first.direction[:, 0], first.direction[:, 1])) % 360
+    nodes, counts = np.unique(np.round(azim, 6) % 360, return_counts=True)
+    assert np.allclose(nodes, az) and np.all(counts == len(el))  # every azimuth node, a full line each
+    # slot order: azimuth-major, vertical lines from v min to v max
+    assert np.allclose(first.scan_angle_deg[:101], el) and np.allclose(azim[:101], 0.0)
+    assert np.allclose(first.scan_dir[:101], [[0, -math.sin(math.radians(e)), math.cos(math.radians(e))] for e in el])
+    # scans follow each other in time at 1/PRF per slot
+    n = len(az) * len(el)
+    assert b.gps_time[n] == pytest.approx(n / sc.prf_hz)
+    assert np.array_equal(b.origin[n], [10.0, 0.0, 1.5])
+
+
+def test_tls_heading_and_tilt():
+    s = survey_from_dict(tls_survey())
+    b = all_pulses(s).subset(slice(s.n_slots // 2, None))  # second scan: heading 90°, tilt 30°
+    az, el = tls_grid(s.scanner)
+    j0 = int(np.argmin(np.abs(el)))  # azimuth 0, elevation 0 → the head's forward axis
+    tilt = math.radians(30)
+    # tilt about the head's x axis raises forward by 30°, heading 90° turns forward to east
+    assert np.allclose(b.direction[j0], [math.cos(tilt), 0.0, math.sin(tilt)], atol=1e-12)
+    # azimuth 90° (head right) stays horizontal under the tilt and points south
+    k = 45 * len(el) + j0
+    assert np.allclose(b.direction[k], [0.0, -1.0, 0.0], atol=1e-12)
+
+
+def test_tls_partial_fov_counts():
+    s = survey_from_dict(tls_survey(tls_h_fov_deg=[30, 130], tls_h_step_deg=0.5, tls_v_fov_deg=[-10, 50],
+                                    tls_v_step_deg=0.25))
+    assert s.n_slots == 2 * 201 * 241
+    b = s.pulses(0, 201 * 241)
+    azim = np.degrees(np.arctan2(b.direction[:, 0], b.direction[:, 1])) % 360
+    assert azim.min() == pytest.approx(30.0) and azim.max() == pytest.approx(130.0)
+
+
+# --------------------------------------------------------------------------- parsing and errors
+
+
+def test_load_survey_yaml(tmp_path):
+    p = tmp_path / "SURVEY.yaml"
+    p.write_text(
+        "scanner: riegl_vq780i\n"
+        "overrides: {prf_hz: 2e5, beam_divergence_mrad: [0.3, 0.2], max_returns: 5}\n"
+        "platform:\n"
+        "  type: linear\n"
+        "  speed_mps: 51\n"
+        "  legs:\n"
+        "    - {start: [0, 0, 700], end: [0, 102, 700]}\n"
+        "    - {start: [0, 102, 700], end: [175, 102, 700], active: false}\n"
+        "    - {start: [175, 102, 700], end: [175, 0, 700]}\n"
+        "trajectory_noise: {position_sigma_m: 0.05}\n"
+        "seed: 7\n"
+        "detector: {mode: paper, window_rule: helios}\n"
+        "output: {dir: out}\n"
+    )
+    s = load_survey(p)
+    assert s.scanner.prf_hz == 2e5 and s.scanner.beam_divergence_mrad == (0.3, 0.2) and s.scanner.max_returns == 5
+    assert s.seed == 7 and s.detector == {"mode": "paper", "window_rule": "helios"} and s.output == {"dir": "out"}
+    assert s.noise.position_sigma_m == 0.05 and s.noise.attitude_sigma_deg == 0.0 and s.noise.correlation_s == 1.0
+    assert s.n_slots == 2 * 400_000 and s.n_sources == 2
+    assert s.base_dir == tmp_path.resolve()
+
+
+def test_yaml_errors_give_the_line(tmp_path):
+    p = tmp_path / "SURVEY.yaml"
+    p.write_text("scanner: riegl_vq780i\nplatform:\n  legs: [{start: [0, 0, 1]\n  speed_mps: 3\n")
+    with pytest.raises(ConfigError, match=r"line \d+"):
+        load_survey(p)
+    p.write_text("scanner: riegl_vq780i\nseed: 1\nseed: 2\n")
+    with pytest.raises(ConfigError, match=r"line 3.*duplicate key 'seed'"):
+        load_survey(p)
+    p.write_text("")
+    with pytest.raises(ConfigError, match="empty"):
+        load_survey(p)
+    with pytest.raises(ConfigError, match="not found"):
+        load_survey(tmp_path / "missing.yaml")
+
+
+GOOD = airborne("riegl_vq780i", legs=[
+    {"start": [0, 0, 700], "end": [0, 100, 700]},
+    {"start": [0, 100, 700], "end": [100, 100, 700], "active": False},
+    {"start": [100, 100, 700], "end": [100, 0, 700]},
+], speed=51.0)
+
+
+def _set(path, value):
+    d = copy.deepcopy(GOOD)
+    *parents, last = path
+    node = d
+    for k in parents:
+        node = node[k]
+    if value is _DELETE:
+        del node[last]
+    else:
+        node[last] = value
+    return d
+
+
+_DELETE = object()
+BAD_SURVEYS = [
+    (_set(["colour"], "red"), "colour"),
+    (_set(["scanner"], _DELETE), "scanner"),
+    (_set(["platform"], _DELETE), "platform"),
+    (_set(["scanner"], "nope"), "scanner"),
+    (_set(["overrides"], {"prf_hz": -1}), r"overrides\.prf_hz"),
+    (_set(["overrides"], [1, 2]), "overrides"),
+    (_set(["platform", "legs"], []), r"platform\.legs"),
+    (_set(["platform", "legs"], _DELETE), r"platform\.legs"),
+    (_set(["platform", "legs", 2, "end"], [1, 2]), r"platform\.legs\[2\]\.end"),
+    (_set(["platform", "legs", 2, "end"], [1, 2, float("nan")]), r"platform\.legs\[2\]\.end"),
+    (_set(["platform", "legs", 0, "start"], [0, "a", 0]), r"platform\.legs\[0\]\.start"),
+    (_set(["platform", "legs", 1, "end"], [0, 100, 700]), r"platform\.legs\[1\]"),
+    (_set(["platform", "legs", 1, "active"], "no"), r"platform\.legs\[1\]\.active"),
+    (_set(["platform", "legs", 1, "speed"], 3), r"platform\.legs\[1\]\.speed"),
+    (_set(["platform", "speed_mps"], 0), r"platform\.speed_mps"),
+    (_set(["platform", "speed_mps"], float("nan")), r"platform\.speed_mps"),
+    (_set(["platform", "speed_mps"], _DELETE), r"platform\.speed_mps"),
+    (_set(["platform", "type"], "helicopter"), r"platform\.type"),
+    (_set(["platform", "type"], "static"), r"platform\.type"),
+    (_set(["platform", "altitude"], 5), r"platform\.altitude"),
+    (_set(["trajectory_noise"], {"position_sigma_m": -1}), r"trajectory_noise\.position_sigma_m"),
+    (_set(["trajectory_noise"], {"correlation_s": 0}), r"trajectory_noise\.correlation_s"),
+    (_set(["trajectory_noise"], {"sigma": 1}), r"trajectory_noise\.sigma"),
+    (_set(["seed"], -1), "seed"),
+    (_set(["seed"], 1.5), "seed"),
+    (_set(["detector"], "paper"), "detector"),
+    ({**tls_survey(), "platform": {"type": "static", "positions": [{"position": [0, 0]}]}},
+     r"platform\.positions\[0\]\.position"),
+    ({**tls_survey(), "platform": {"type": "static", "positions": []}}, r"platform\.positions"),
+    ({**tls_survey(), "platform": {"type": "static", "positions": [{"position": [0, 0, 1], "tilt_deg": 100}]}},
+     r"platform\.positions\[0\]\.tilt_deg"),
+    ({**tls_survey(), "platform": {"type": "linear", "speed_mps": 1, "legs": GOOD["platform"]["legs"]}},
+     r"platform\.type"),
+]
+
+
+@pytest.mark.parametrize("d,key", BAD_SURVEYS)
+def test_bad_surveys_name_the_key(d, key):
+    with pytest.raises(ConfigError, match=key):
+        survey_from_dict(d)
+
+
+def test_no_active_leg_is_an_error():
+    d = copy.deepcopy(GOOD)
+    for leg in d["platform"]["legs"]:
+        leg["active"] = False
+    with pytest.raises(ConfigError, match=r"platform\.legs"):
+        survey_from_dict(d)
+
+
+def test_pulse_range_is_checked():
+    s = survey_from_dict(GOOD)
+    with pytest.raises(ValueError):
+        s.pulses(-1, 5)
+    with pytest.raises(ValueError):
+        s.pulses(0, s.n_slots + 1)
+    assert len(s.pulses(3, 3)) == 0

@@ -1,0 +1,608 @@
+"""Scanner settings, device presets and deflector patterns.
+
+A scanner is described by a frozen :class:`ScannerSettings`. Surveys name one of the
+:data:`PRESETS` and may override any field except ``name`` and ``deflector``
+(:func:`scanner_from_preset` validates the result and raises
+:class:`~vlsforest.errors.ConfigError` naming the offending key).
+
+Deflector patterns
+------------------
+:func:`deflect` turns the slot index *within one flight line or scan* into the beam direction
+in the platform (body) frame. Frame: x = right, y = forward (flight direction), z = up; nadir
+is −z. Angles are in degrees unless the name says otherwise. ``f = scan_freq_hz / prf_hz`` is
+the fraction of a line swept per slot, and every flight line starts a new scan line.
+
+``polygon``
+    Sawtooth. The mirror angle of slot k is ``a = −M + 2M·frac(k·f)`` with M the device
+    half-sweep ``max_scan_angle_deg``; a line holds ``PRF/scan_freq`` slots spread evenly over
+    [−M, +M). A pulse is emitted only if ``|a| ≤ scan_angle_deg``: with a survey angle below
+    the device maximum, pulses are lost, as on a real polygon scanner (HELIOS++ HEAD
+    behaviour; v1.0.x instead wrapped at the survey angle and emitted everything, which is
+    identical whenever ``scan_angle_deg == max_scan_angle_deg``, as in the study's ALS).
+``rotating``
+    A 360° mirror turning ``scan_freq_hz`` times a second: ``a = −180 + 360·frac(k·f)``
+    (slot 0 looks at the zenith, then the beam sweeps left → nadir → right). Emitted only if
+    ``|a| ≤ min(max_scan_angle_deg, scan_angle_deg)``; with the ±90° window of the miniVUX-1UAV
+    about half of the slots are emitted.
+``oscillating``
+    Triangle wave between ±scan_angle_deg, ``PRF/scan_freq`` slots per line (one line = one
+    sweep from one side to the other; even lines sweep left → right, odd lines back). The
+    turn-around is a sharp corner (no quadratic turn-around offsets as in HELIOS++ v1.0.x,
+    no turning pulses as at HEAD). Every slot is emitted.
+``conic`` (Palmer)
+    Fixed cone of half angle ``scan_angle_deg`` about nadir; the azimuth φ (from forward
+    towards right) advances ``360·f`` per slot. Uses the survey frequency (HELIOS++ uses the
+    device's maximum frequency: a quirk not reproduced). Every slot is emitted.
+``tls``
+    A grid of nodes: azimuths ``tls_h_fov_deg[0] + i·tls_h_step_deg`` (clockwise from the head's
+    forward axis; a full 360° circle does not repeat its start), elevations
+    ``tls_v_fov_deg[0] + j·tls_v_step_deg`` up to ``tls_v_fov_deg[1]``; slot order is
+    azimuth-major (one vertical line after another). Every slot is emitted. ``scan_freq_hz``,
+    ``scan_angle_deg`` and ``max_scan_angle_deg`` are not used.
+
+Every pattern also gives ``scan_dir``: the unit vector, perpendicular to the beam, in which the
+beam sweeps at that instant (the time derivative of the direction, normalised; for ``tls`` the
+direction of increasing elevation; for the back sweep of ``oscillating`` it points back), and the
+signed scan angle written to LAS: the across-track deflection from nadir, ``atan2(d_x, −d_z)``
+(positive = right of track; equal to the mirror angle for polygon, rotating and oscillating), or
+the elevation for ``tls``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlsforest.errors import ConfigError
+
+__all__ = [
+    "DEFLECTORS",
+    "PRESETS",
+    "MINIVUX_REAL_DIVERGENCE_FWHM_MRAD",
+    "ScannerSettings",
+    "apply_overrides",
+    "deflect",
+    "fwhm_to_1e2",
+    "scanner_from_dict",
+    "scanner_from_preset",
+    "tls_grid",
+    "validate_scanner",
+]
+
+#: the deflector kinds understood by :func:`deflect`
+DEFLECTORS = ("polygon", "rotating", "oscillating", "conic", "tls")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScannerSettings:
+    """One laser scanner: device and survey settings.
+
+    Angles are half angles unless stated otherwise. Beam divergence is the *full* angle at the
+    1/e² intensity level, ``(major, minor)``; a circular beam has equal values.
+
+    Parameters
+    ----------
+    name : str
+        Preset name (informational).
+    deflector : str
+        One of :data:`DEFLECTORS`.
+    prf_hz : float
+        Pulse repetition frequency: one slot every ``1/prf_hz`` seconds.
+    scan_freq_hz : float
+        Lines per second (conic: rotations per second; tls: unused).
+    scan_angle_deg : float
+        Survey half scan angle (conic: cone half angle; tls: unused).
+    max_scan_angle_deg : float
+        Device limit: polygon facet half-sweep; rotating: half-width of the active window around
+        nadir; oscillating/conic: largest allowed survey angle; tls: unused.
+    beam_divergence_mrad : tuple of float
+        ``(major, minor)`` full divergence at 1/e².
+    beam_orientation_deg : float
+        Angle of the major axis from the scan direction.
+    beam_sample_quality : int
+        Number of sub-ray rings (HELIOS++ BSQ), 1..10.
+    wavelength_nm, pulse_length_ns, bin_size_ns, window_size_ns : float
+        Laser wavelength, pulse length, waveform bin size and peak-detection window.
+    min_energy : float
+        Detection threshold (0 = the simulator's default).
+    range_noise_m : float
+        Standard deviation of the Gaussian range noise per return.
+    max_returns : int
+        Maximum returns per pulse (0 = unlimited).
+    range_min_m : float
+        Minimum range: nearer hits are dropped.
+    average_power_w, beam_quality_factor, optical_efficiency, receiver_diameter_m : float
+        Energy-model constants (HELIOS++ defaults 4 W, 1, 0.99, 0.15 m).
+    visibility_km : float
+        Atmospheric visibility; used only if ``atmosphere``.
+    atmosphere : bool
+        Apply atmospheric attenuation.
+    tls_h_fov_deg : tuple of float
+        (start, end) azimuth of a TLS scan.
+    tls_v_fov_deg : tuple of float
+        (min, max) elevation from horizontal of a TLS scan.
+    tls_h_step_deg, tls_v_step_deg : float
+        Angular steps of a TLS scan.
+    """
+
+    name: str
+    deflector: str
+    prf_hz: float
+    scan_freq_hz: float
+    scan_angle_deg: float
+    max_scan_angle_deg: float
+    beam_divergence_mrad: tuple[float, float]
+    beam_orientation_deg: float = 0.0
+    beam_sample_quality: int = 3
+    wavelength_nm: float = 1064.0
+    pulse_length_ns: float = 4.0
+    bin_size_ns: float = 0.25
+    window_size_ns: float = 1.0
+    min_energy: float = 0.0
+    range_noise_m: float = 0.0
+    max_returns: int = 0
+    range_min_m: float = 0.0
+    average_power_w: float = 4.0
+    beam_quality_factor: float = 1.0
+    optical_efficiency: float = 0.99
+    receiver_diameter_m: float = 0.15
+    visibility_km: float = 23.0
+    atmosphere: bool = False
+    tls_h_fov_deg: tuple[float, float] = (0.0, 360.0)
+    tls_v_fov_deg: tuple[float, float] = (-40.0, 60.0)
+    tls_h_step_deg: float = 0.017
+    tls_v_step_deg: float = 0.017
+
+    def __post_init__(self):
+        # lists (e.g. from YAML) become tuples so that the settings stay hashable
+        for key in ("beam_divergence_mrad", "tls_h_fov_deg", "tls_v_fov_deg"):
+            v = getattr(self, key)
+            if isinstance(v, list):
+                object.__setattr__(self, key, tuple(v))
+
+
+#: value kinds of the overridable fields, used to check types
+_KINDS = {
+    "beam_sample_quality": "int",
+    "max_returns": "int",
+    "atmosphere": "bool",
+    "beam_divergence_mrad": "pair_or_scalar",
+    "tls_h_fov_deg": "pair",
+    "tls_v_fov_deg": "pair",
+}
+_FIELDS = tuple(f.name for f in dataclasses.fields(ScannerSettings))
+_OVERRIDABLE = tuple(f for f in _FIELDS if f not in ("name", "deflector"))
+
+
+def fwhm_to_1e2(angle):
+    """Convert a Gaussian beam's full width at half maximum into its full width at 1/e².
+
+    For an intensity profile ``exp(−2 r²/w²)`` the half maximum lies at
+    ``r = w·sqrt(ln 2 / 2)``, so ``FWHM = w·sqrt(2 ln 2)`` and the 1/e² full width
+    ``2w = FWHM · 2/sqrt(2 ln 2) ≈ 1.699 · FWHM``.
+
+    Parameters
+    ----------
+    angle : float or array_like
+        FWHM (any unit).
+
+    Returns
+    -------
+    float or ndarray
+        The 1/e² full width, same unit.
+    """
+    factor = 2.0 / math.sqrt(2.0 * math.log(2.0))
+    if np.isscalar(angle):
+        return float(angle) * factor
+    return np.asarray(angle, dtype=np.float64) * factor
+
+
+#: the real miniVUX-1UAV beam, (major, minor) full divergence at 50 % peak intensity (FWHM), mrad.
+#: As a 1/e² divergence for ScannerSettings: ``tuple(fwhm_to_1e2(...))`` ≈ (2.72, 0.85) mrad.
+MINIVUX_REAL_DIVERGENCE_FWHM_MRAD = (1.6, 0.5)
+
+
+PRESETS: dict[str, ScannerSettings] = {
+    # RIEGL VQ-780i as flown for the study's ALS (Weiser et al. 2021, simulation table): 1 MHz,
+    # 250 lines/s (the real campaign: 225), ±30° = the device's full 60° FOV, 0.25 mrad (1/e²).
+    # range_min_m = 100 m: the datasheet minimum range of the VQ-780i and the rangeMin of the
+    # HELIOS++ scanner definition. At the study's 658–725 m above ground nothing in a forest plot
+    # comes nearer, so it drops no hit; it only enters the Gaussian beam-width term
+    # w(R) ∝ sqrt(R0² + R²), which changes the sub-ray ring weights by < 2 % at those ranges.
+    # max_returns = 0 (unlimited) as in the HELIOS++ v1.0.x definition the study ran; the real
+    # device reports at most 5 targets per pulse at 1 MHz (override max_returns: 5 to mimic it).
+    "riegl_vq780i": ScannerSettings(
+        name="riegl_vq780i",
+        deflector="polygon",
+        prf_hz=1_000_000.0,
+        scan_freq_hz=250.0,
+        scan_angle_deg=30.0,
+        max_scan_angle_deg=30.0,
+        beam_divergence_mrad=(0.25, 0.25),
+        wavelength_nm=1064.0,
+        window_size_ns=1.75,
+        range_min_m=100.0,
+    ),
+    # RIEGL miniVUX-1UAV: a 360° rotating mirror, 100 kHz, 50 rotations/s, pulses emitted only
+    # within ±90° of nadir (about half of the slots). The study simulated a circular 0.5 mrad
+    # beam (HELIOS++ has no elliptical beam): that is the *minor* axis of the real beam, which is
+    # 1.6 × 0.5 mrad at 50 % peak intensity (FWHM), i.e. ≈ 2.72 × 0.85 mrad at 1/e²
+    # (fwhm_to_1e2, MINIVUX_REAL_DIVERGENCE_FWHM_MRAD). range_min_m = 3 m: the datasheet
+    # minimum range (immaterial at 64–72 m above ground).
+    "riegl_minivux1uav": ScannerSettings(
+        name="riegl_minivux1uav",
+        deflector="rotating",
+        prf_hz=100_000.0,
+        scan_freq_hz=50.0,
+        scan_angle_deg=90.0,
+        max_scan_angle_deg=90.0,
+        beam_divergence_mrad=(0.5, 0.5),
+        wavelength_nm=905.0,
+        window_size_ns=1.5,
+        range_min_m=3.0,
+    ),
+    # The same miniVUX settings as HELIOS++ v1.0.x would run them with a "rotating" (polygon)
+    # scanner of ±90°: every one of the 100 kHz slots is emitted and spread over ±90° (twice the
+    # pulses per line of the real 360° mirror). Use it to reproduce the study if its density
+    # matches this rather than riegl_minivux1uav (the reference notes leave it open).
+    "riegl_minivux1uav_helios1": ScannerSettings(
+        name="riegl_minivux1uav_helios1",
+        deflector="polygon",
+        prf_hz=100_000.0,
+        scan_freq_hz=50.0,
+        scan_angle_deg=90.0,
+        max_scan_angle_deg=90.0,
+        beam_divergence_mrad=(0.5, 0.5),
+        wavelength_nm=905.0,
+        window_size_ns=1.5,
+        range_min_m=3.0,
+    ),
+    # RIEGL VZ-400 as used for the study's TLS: 1550 nm, 0.3 mrad, 300 kHz, 0.017° steps
+    # (3 mm at 10 m), 100° vertical FOV (−40° … +60°), full panorama. At 0.017° one scan has
+    # 21 177 × 5 883 ≈ 1.25e8 slots (≈ 7 min at 300 kHz); the data generator overrides the steps
+    # for speed. window_size_ns = 1 ns: the HELIOS++ default (pulse length / 4); the study states
+    # none for TLS. range_min_m = 1.5 m: the datasheet minimum range. scan_freq_hz, scan angles:
+    # unused for tls (the vertical line rate follows from PRF and the grid).
+    "riegl_vz400": ScannerSettings(
+        name="riegl_vz400",
+        deflector="tls",
+        prf_hz=300_000.0,
+        scan_freq_hz=50.0,
+        scan_angle_deg=50.0,
+        max_scan_angle_deg=50.0,
+        beam_divergence_mrad=(0.3, 0.3),
+        wavelength_nm=1550.0,
+        window_size_ns=1.0,
+        range_min_m=1.5,
+        tls_h_fov_deg=(0.0, 360.0),
+        tls_v_fov_deg=(-40.0, 60.0),
+        tls_h_step_deg=0.017,
+        tls_v_step_deg=0.017,
+    ),
+}
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _is_real(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _coerce(key: str, value, kind: str, where: str):
+    """Check the type of one override value and return it in canonical form."""
+    label = f"{where}.{key}"
+    if kind == "int":
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            if isinstance(value, (float, np.floating)) and math.isfinite(value) and float(value).is_integer():
+                return int(value)
+            raise ConfigError(f"{label} must be an integer (got {value!r})")
+        return int(value)
+    if kind == "bool":
+        if not isinstance(value, (bool, np.bool_)):
+            raise ConfigError(f"{label} must be true or false (got {value!r})")
+        return bool(value)
+    if kind in ("pair", "pair_or_scalar"):
+        if kind == "pair_or_scalar" and _is_real(value):
+            return (float(value), float(value))
+        if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(_is_real(v) for v in value):
+            what = "a number or a list of two numbers" if kind == "pair_or_scalar" else "a list of two numbers"
+            raise ConfigError(f"{label} must be {what} (got {value!r})")
+        return (float(value[0]), float(value[1]))
+    # float
+    if not _is_real(value):
+        raise ConfigError(f"{label} must be a number (got {value!r})")
+    return float(value)
+
+
+def validate_scanner(s: ScannerSettings, where: str = "overrides") -> None:
+    """Check the values of a scanner; raise :class:`ConfigError` naming the key.
+
+    Parameters
+    ----------
+    s : ScannerSettings
+        The settings to check.
+    where : str
+        Prefix for key names in messages (``overrides`` → ``overrides.prf_hz``).
+    """
+
+    def bad(key, msg):
+        raise ConfigError(f"{where}.{key} {msg} (got {getattr(s, key)!r})")
+
+    if s.deflector not in DEFLECTORS:
+        raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {s.deflector!r})")
+    for key in _OVERRIDABLE:
+        v = getattr(s, key)
+        vals = v if isinstance(v, tuple) else (v,)
+        for x in vals:
+            if _is_real(x) and not math.isfinite(x):
+                bad(key, "must be finite")
+    for key in ("prf_hz", "scan_freq_hz", "bin_size_ns", "pulse_length_ns", "wavelength_nm",
+                "average_power_w", "receiver_diameter_m", "visibility_km"):
+        if not getattr(s, key) > 0:
+            bad(key, "must be > 0")
+    for key in ("window_size_ns", "min_energy", "range_noise_m", "range_min_m", "max_returns"):
+        if getattr(s, key) < 0:
+            bad(key, "must be >= 0")
+    if not 1 <= s.beam_sample_quality <= 10:
+        bad("beam_sample_quality", "must be between 1 and 10")
+    major, minor = s.beam_divergence_mrad
+    if not (major > 0 and minor > 0):
+        bad("beam_divergence_mrad", "must be > 0")
+    if minor > major:
+        bad("beam_divergence_mrad", "must be (major, minor) with minor <= major")
+    if s.beam_quality_factor < 1:
+        bad("beam_quality_factor", "must be >= 1 (M² of a real beam)")
+    if not 0 < s.optical_efficiency <= 1:
+        bad("optical_efficiency", "must be in (0, 1]")
+    if s.deflector != "tls":
+        limit = 180.0 if s.deflector == "rotating" else 90.0
+        if not 0 < s.max_scan_angle_deg <= limit:
+            bad("max_scan_angle_deg", f"must be in (0, {limit:g}] for a {s.deflector} deflector")
+        if not 0 < s.scan_angle_deg <= s.max_scan_angle_deg:
+            bad("scan_angle_deg", f"must be in (0, max_scan_angle_deg = {s.max_scan_angle_deg:g}]")
+    h0, h1 = s.tls_h_fov_deg
+    if not (h1 > h0 and h1 - h0 <= 360.0):
+        bad("tls_h_fov_deg", "must be (start, end) with start < end <= start + 360")
+    v0, v1 = s.tls_v_fov_deg
+    if not (-90.0 <= v0 < v1 <= 90.0):
+        bad("tls_v_fov_deg", "must be (min, max) with -90 <= min < max <= 90")
+    for key in ("tls_h_step_deg", "tls_v_step_deg"):
+        if not getattr(s, key) > 0:
+            bad(key, "must be > 0")
+
+
+def scanner_from_preset(name: str, overrides: dict | None = None) -> ScannerSettings:
+    """Build a scanner from a preset with optional overrides, and validate it.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`PRESETS`.
+    overrides : dict, optional
+        Field values replacing the preset's (any field but ``name`` and ``deflector``).
+        ``beam_divergence_mrad`` may be a number (circular beam) or ``[major, minor]``.
+
+    Returns
+    -------
+    ScannerSettings
+
+    Raises
+    ------
+    ConfigError
+        Unknown preset (``scanner``), unknown override key, wrong type or value
+        (``overrides.<key>``).
+    """
+    if not isinstance(name, str) or name not in PRESETS:
+        raise ConfigError(f"scanner: unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}")
+    return apply_overrides(PRESETS[name], overrides)
+
+
+def apply_overrides(base: ScannerSettings, overrides: dict | None) -> ScannerSettings:
+    """Replace fields of ``base`` by ``overrides`` (not ``name``/``deflector``) and validate.
+
+    Parameters
+    ----------
+    base : ScannerSettings
+        A preset or custom scanner.
+    overrides : dict, optional
+        Field values; ``beam_divergence_mrad`` may be a number or ``[major, minor]``.
+
+    Returns
+    -------
+    ScannerSettings
+
+    Raises
+    ------
+    ConfigError
+        Naming ``overrides.<key>``.
+    """
+    if overrides is None:
+        overrides = {}
+    if not isinstance(overrides, dict):
+        raise ConfigError(f"overrides must be a mapping of scanner fields (got {type(overrides).__name__})")
+    clean = {}
+    for key, value in overrides.items():
+        if key in ("name", "deflector"):
+            raise ConfigError(f"overrides.{key} cannot be overridden; choose another preset")
+        if key not in _OVERRIDABLE:
+            raise ConfigError(
+                f"overrides.{key} is not a scanner setting; allowed: {', '.join(_OVERRIDABLE)}"
+            )
+        clean[key] = _coerce(key, value, _KINDS.get(key, "float"), "overrides")
+    settings = dataclasses.replace(base, **clean)
+    validate_scanner(settings, "overrides")
+    return settings
+
+
+def scanner_from_dict(d: dict, where: str = "scanner") -> ScannerSettings:
+    """Build and validate a custom scanner from a mapping of :class:`ScannerSettings` fields.
+
+    Required: ``deflector``, ``prf_hz``, ``beam_divergence_mrad`` and, except for ``tls``,
+    ``scan_freq_hz`` and ``scan_angle_deg``. ``name`` defaults to ``"custom"`` and
+    ``max_scan_angle_deg`` to ``scan_angle_deg``; everything else to the dataclass defaults.
+
+    Parameters
+    ----------
+    d : dict
+        The fields.
+    where : str
+        Key prefix for error messages.
+
+    Returns
+    -------
+    ScannerSettings
+    """
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where} must be a preset name or a mapping of scanner fields (got {d!r})")
+    for key in d:
+        if key not in _FIELDS:
+            raise ConfigError(f"{where}.{key} is not a scanner setting; allowed: {', '.join(_FIELDS)}")
+    deflector = d.get("deflector")
+    if deflector not in DEFLECTORS:
+        raise ConfigError(f"{where}.deflector must be one of {', '.join(DEFLECTORS)} (got {deflector!r})")
+    name = d.get("name", "custom")
+    if not isinstance(name, str):
+        raise ConfigError(f"{where}.name must be a string (got {name!r})")
+    required = ["prf_hz", "beam_divergence_mrad"]
+    if deflector != "tls":
+        required += ["scan_freq_hz", "scan_angle_deg"]
+    for key in required:
+        if key not in d:
+            raise ConfigError(f"{where}.{key} is missing")
+    vals = {k: _coerce(k, v, _KINDS.get(k, "float"), where) for k, v in d.items() if k not in ("name", "deflector")}
+    vals.setdefault("scan_freq_hz", 1.0)
+    vals.setdefault("scan_angle_deg", 1.0)
+    vals.setdefault("max_scan_angle_deg", vals["scan_angle_deg"])
+    settings = ScannerSettings(name=name, deflector=deflector, **vals)
+    validate_scanner(settings, where)
+    return settings
+
+
+# --------------------------------------------------------------------------- deflectors
+
+
+def tls_grid(s: ScannerSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuth and elevation nodes of one TLS scan (degrees).
+
+    Returns
+    -------
+    azimuth_deg : ndarray, shape (n_az,)
+        ``h0 + i·h_step`` up to ``h1``; a full 360° circle stops before ``h0 + 360``.
+    elevation_deg : ndarray, shape (n_el,)
+        ``v0 + j·v_step`` up to ``v1``.
+    """
+    h0, h1 = s.tls_h_fov_deg
+    v0, v1 = s.tls_v_fov_deg
+    span = h1 - h0
+    if span >= 360.0 - 1e-9:
+        n_az = int(math.ceil(360.0 / s.tls_h_step_deg - 1e-9))
+    else:
+        n_az = int(math.floor(span / s.tls_h_step_deg + 1e-9)) + 1
+    n_el = int(math.floor((v1 - v0) / s.tls_v_step_deg + 1e-9)) + 1
+    return h0 + np.arange(n_az) * s.tls_h_step_deg, v0 + np.arange(n_el) * s.tls_v_step_deg
+
+
+def _line_phase(k: np.ndarray, freq: float, prf: float) -> tuple[np.ndarray, np.ndarray]:
+    """Line number and phase in [0, 1) of slot k for `freq` lines per second.
+
+    Exact for integer-valued frequencies (``k·freq`` and ``line·prf`` are exact in float64), so
+    that line boundaries fall on the right slots.
+    """
+    x = k.astype(np.float64) * freq
+    line = np.floor(x / prf)
+    frac = (x - line * prf) / prf
+    low = frac < 0
+    line[low] -= 1
+    frac[low] += 1
+    high = frac >= 1
+    line[high] += 1
+    frac[high] -= 1
+    return line.astype(np.int64), frac
+
+
+def _across_track(angle_deg: np.ndarray):
+    """Body-frame direction and sweep direction of an across-track deflection."""
+    a = np.radians(angle_deg)
+    sa, ca = np.sin(a), np.cos(a)
+    direction = np.zeros((len(a), 3))
+    scan_dir = np.zeros((len(a), 3))
+    direction[:, 0] = sa
+    direction[:, 2] = -ca
+    scan_dir[:, 0] = ca
+    scan_dir[:, 2] = sa
+    return direction, scan_dir
+
+
+def deflect(s: ScannerSettings, k: np.ndarray):
+    """Beam pattern of slots ``k`` (counted from the start of a flight line or scan).
+
+    Parameters
+    ----------
+    s : ScannerSettings
+        The scanner.
+    k : ndarray of int
+        Slot indices within the line/scan, ``k ≥ 0``.
+
+    Returns
+    -------
+    emitted : ndarray of bool, shape (n,)
+        Whether the slot's pulse is emitted.
+    direction : ndarray, shape (m, 3)
+        Unit beam directions in the body frame (x right, y forward, z up), emitted slots only.
+    scan_dir : ndarray, shape (m, 3)
+        Unit sweep directions, perpendicular to ``direction``, emitted slots only.
+    scan_angle_deg : ndarray, shape (m,)
+        Signed across-track angle from nadir (tls: elevation), emitted slots only.
+    """
+    k = np.asarray(k, dtype=np.int64)
+    d = s.deflector
+    if d == "polygon":
+        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
+        m = s.max_scan_angle_deg
+        angle = -m + 2.0 * m * frac
+        emitted = np.abs(angle) <= s.scan_angle_deg * (1 + 1e-12)
+        angle = angle[emitted]
+        direction, scan_dir = _across_track(angle)
+        return emitted, direction, scan_dir, angle
+    if d == "rotating":
+        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
+        angle = -180.0 + 360.0 * frac
+        window = min(s.max_scan_angle_deg, s.scan_angle_deg)
+        emitted = np.abs(angle) <= window * (1 + 1e-12)
+        angle = angle[emitted]
+        direction, scan_dir = _across_track(angle)
+        return emitted, direction, scan_dir, angle
+    if d == "oscillating":
+        line, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
+        t = s.scan_angle_deg
+        back = (line % 2) == 1
+        angle = np.where(back, t - 2.0 * t * frac, -t + 2.0 * t * frac)
+        direction, scan_dir = _across_track(angle)
+        scan_dir[back] *= -1.0
+        return np.ones(len(k), dtype=bool), direction, scan_dir, angle
+    if d == "conic":
+        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
+        phi = 2.0 * np.pi * frac
+        c = math.radians(s.scan_angle_deg)
+        sp, cp = np.sin(phi), np.cos(phi)
+        direction = np.stack([math.sin(c) * sp, math.sin(c) * cp, np.full_like(phi, -math.cos(c))], axis=1)
+        scan_dir = np.stack([cp, -sp, np.zeros_like(phi)], axis=1)
+        angle = np.degrees(np.arctan2(direction[:, 0], -direction[:, 2]))
+        return np.ones(len(k), dtype=bool), direction, scan_dir, angle
+    if d == "tls":
+        az, el = tls_grid(s)
+        n_el = len(el)
+        i_az, i_el = np.divmod(k, n_el)
+        if len(k) and i_az.max() >= len(az):
+            raise ValueError(f"slot {int(k.max())} beyond the {len(az) * n_el} slots of a TLS scan")
+        a = np.radians(az[i_az])
+        e = np.radians(el[i_el])
+        sa, ca, se, ce = np.sin(a), np.cos(a), np.sin(e), np.cos(e)
+        direction = np.stack([ce * sa, ce * ca, se], axis=1)
+        scan_dir = np.stack([-se * sa, -se * ca, ce], axis=1)
+        return np.ones(len(k), dtype=bool), direction, scan_dir, el[i_el]
+    raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {d!r})")

@@ -1,0 +1,36 @@
+"""Synthetic trees for the embedded virtual Bretten forest.
+
+* :mod:`~vlsforest.synth.species` — species parameter sets, :class:`TreeParams`, draws from the
+  real Bretten distributions (:func:`sample_tree_params`) and the study's 30 targets
+  (:func:`target_tree_params`);
+* :mod:`~vlsforest.synth.trees` — :func:`generate_tree` → :class:`TreeGeometry` (triangle mesh
+  with organ labels, closed stem mesh, truth measured on the geometry);
+* :mod:`~vlsforest.synth.plant_area` — :func:`true_plant_area`, the exact one-sided plant area per
+  voxel on any grid (validation of PAD estimates).
+"""
+
+from vlsforest.synth.plant_area import PlantAreaGrid, true_plant_area
+from vlsforest.synth.species import (
+    SPECIES,
+    TABLE1,
+    SpeciesParams,
+    TreeParams,
+    get_species,
+    leaf_angle_pdf,
+    sample_tree_params,
+    target_tree_params,
+)
+from vlsforest.synth.trees import (
+    ORGAN_BRANCH,
+    ORGAN_FOLIAGE,
+    ORGAN_STEM,
+    TreeGeometry,
+    TriMesh,
+    generate_tree,
+)
+
+__all__ = [
+    "SPECIES", "TABLE1", "SpeciesParams", "TreeParams", "get_species", "leaf_angle_pdf",
+    "sample_tree_params", "target_tree_params", "TreeGeometry", "TriMesh", "generate_tree",
+    "ORGAN_STEM", "ORGAN_BRANCH", "ORGAN_FOLIAGE", "PlantAreaGrid", "true_plant_area",
+]
