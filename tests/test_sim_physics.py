@@ -175,3 +175,20 @@ def test_threshold_removes_weakest_first():
     kept = set(zip(base.points["pulse"][amp >= thr].tolist(), np.round(base.points["xyz"][amp >= thr, 2], 6)))
     now = set(zip(cut.points["pulse"].tolist(), np.round(cut.points["xyz"][:, 2], 6)))
     assert now == kept  # exactly the returns below the threshold were removed
+
+
+def test_weighted_return_position_lies_on_the_hit_surface():
+    # a plane patch covering x ≥ 0 only; pulses whose central ray just misses it (x_c < 0)
+    sc = Scene()
+    sc.add_plane(1, 0.0, [0.0, -20, 20, 20])
+    ov = dict(NADIR, prf_hz=2000, scan_freq_hz=2, beam_divergence_mrad=0.5)
+    legs = [{"start": [-0.05, 0.0, 300.0], "end": [-0.0001, 0.0, 300.0], "active": True}]
+    axis = simulate(sc, _survey(ov, legs, speed=0.5), workers=1)
+    weighted = simulate(sc, _survey(ov, legs, speed=0.5, detector={"return_position": "weighted"}), workers=1)
+    assert len(axis.points["xyz"]) == len(weighted.points["xyz"]) > 10
+    # HELIOS convention: on the central axis, i.e. beside the patch
+    assert (axis.points["xyz"][:, 0] < 0).all()
+    # energy-weighted sub-ray hits: on the patch, within the footprint
+    xw = weighted.points["xyz"][:, 0]
+    assert (xw >= 0).all() and (xw <= 2 / 3 * 0.5e-3 * 300 + 1e-9).all()
+    assert np.abs(weighted.points["xyz"][:, 2]).max() < 1e-6

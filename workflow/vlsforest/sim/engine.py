@@ -428,6 +428,10 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
         for o, c, r, s, h in zip(scene_parts["object_id"], scene_parts["classification"],
                                  scene_parts["reflectance"], scene_parts["specularity"], scene_parts["shininess"])])
     job = _Job(fake_scene, survey, seed, False, block_slots)
+    if len(hits["subray"]) and int(hits["subray"].max()) >= job.pattern.n:
+        raise ConfigError(f"the hits were traced with more sub-rays than the survey's beam_sample_quality "
+                          f"{survey.scanner.beam_sample_quality} gives ({job.pattern.n}); detection needs the "
+                          "beam geometry the hits were traced with")
     blocks = pulses["slot"] // job.block_slots
     hit_ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
     np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=hit_ptr[1:])

@@ -24,8 +24,12 @@ Voxel placement follows HELIOS++: a ``.vox`` cell (i, j, k) is centred at
 error. Deliberate differences from HELIOS++ v1.0: PAD is clipped to ``pad_max`` first so a
 cube never outgrows its cell (HELIOS++ lets it, quirk 9), voxels with PAD 0 or NaN carry no
 cube, and ``random_shift`` moves each cube by ``U(−1, 1)·(res/2 − half)`` per axis with the
-part's own seed. Voxel sets are traced with a sparse two-level grid and a 3-D DDA instead of
-12 triangles per voxel, so tens of millions of voxels fit in memory.
+part's own seed.
+
+Voxel back-ends (top-level ``voxel_backend``): ``auto`` (default) gives voxel sets of up to
+300 000 cubes to Embree as 12 triangles per cube (fastest for small models) and traces
+larger ones with a sparse two-level grid and a 3-D DDA (no triangles, so tens of millions of
+voxels fit in memory); ``embree`` and ``grid`` force one back-end. Both give the same hits.
 """
 
 from __future__ import annotations
@@ -109,7 +113,14 @@ class Scene:
     :meth:`trace`. The Embree BVH is built lazily, per process.
     """
 
-    def __init__(self):
+    #: voxel sets up to this many cubes go to Embree as 12 triangles each with
+    #: ``voxel_backend="auto"``; larger ones are traced with the sparse grid
+    EMBREE_VOXEL_LIMIT = 300_000
+
+    def __init__(self, voxel_backend: str = "auto"):
+        if voxel_backend not in ("auto", "embree", "grid"):
+            raise ConfigError(f"voxel_backend must be 'auto', 'embree' or 'grid', got {voxel_backend!r}")
+        self.voxel_backend = voxel_backend
         self.parts: list[ScenePart] = []
         self._planes: list[_Plane] = []
         self._meshes: list[_Mesh] = []
@@ -189,13 +200,13 @@ class Scene:
         """Build a scene from a parsed SCENE.yaml mapping."""
         if not isinstance(cfg, dict) or "parts" not in cfg:
             raise ConfigError(f"{source}: needs a top-level 'parts:' list")
-        extra = set(cfg) - {"parts"}
+        extra = set(cfg) - {"parts", "voxel_backend"}
         if extra:
             raise ConfigError(f"{source}: unknown top-level key(s) {sorted(extra)}")
         parts = cfg["parts"]
         if not isinstance(parts, list) or not parts:
             raise ConfigError(f"{source}: 'parts' must be a non-empty list")
-        scene = cls()
+        scene = cls(voxel_backend=cfg.get("voxel_backend", "auto"))
         base = Path(base_dir)
         for n, p in enumerate(parts):
             _add_part_from_dict(scene, p, base, f"{source}: parts[{n}]")
@@ -212,23 +223,27 @@ class Scene:
         for m in self._meshes:
             lo = np.minimum(lo, m.vertices.min(axis=0))
             hi = np.maximum(hi, m.vertices.max(axis=0))
-        for g in self.grids:
-            glo, ghi = g.bounds
-            lo = np.minimum(lo, glo)
-            hi = np.maximum(hi, ghi)
+        for v in self._voxelsets:
+            lo = np.minimum(lo, v.origin + v.ijk.min(axis=0) * v.size)
+            hi = np.maximum(hi, v.origin + (v.ijk.max(axis=0) + 1) * v.size)
         return lo, hi
 
     @property
     def grids(self) -> list[VoxelGrid]:
         """The voxel grids, one per lattice (voxel parts sharing a lattice are merged)."""
         if self._grids is None:
-            self._grids = _build_grids(self._voxelsets)
+            self._grids = _build_grids([s for s in self._voxelsets if not self._in_embree(s)])
         return self._grids
+
+    def _in_embree(self, vset: _VoxelSet) -> bool:
+        if self.voxel_backend == "auto":
+            return len(vset.ijk) <= self.EMBREE_VOXEL_LIMIT
+        return self.voxel_backend == "embree"
 
     @property
     def n_voxels(self) -> int:
         """Number of cubes in the scene."""
-        return int(sum(g.n_voxels for g in self.grids))
+        return int(sum(len(s.ijk) if s.half is None else int((s.half > 0).sum()) for s in self._voxelsets))
 
     @property
     def n_triangles(self) -> int:
@@ -246,6 +261,12 @@ class Scene:
         for m in self._meshes:
             TriangleMesh(sc, (m.vertices - self._shift).astype(np.float32), m.faces)
             parts.append(m.part)
+        for v in self._voxelsets:
+            if self._in_embree(v):
+                verts, faces = _cube_triangles(v)
+                if len(faces):
+                    TriangleMesh(sc, (verts - self._shift).astype(np.float32), faces)
+                    parts.append(v.part)
         self._embree = sc
         self._embree_parts = np.asarray(parts, dtype=np.int32)
 
@@ -272,7 +293,7 @@ class Scene:
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int32)
         cos_inc = np.zeros(n)
-        if self._meshes:
+        if self._meshes or any(self._in_embree(v) for v in self._voxelsets):
             if self._embree is None:
                 self._build_embree()
             res = self._embree.run((o - self._shift).astype(np.float32), d.astype(np.float32), output=1)
@@ -470,6 +491,25 @@ def _read_centres(path: Path):
     if sizes is not None and not np.isfinite(sizes).all():
         raise InputDataError(f"{path}: NaN sizes")
     return xyz, sizes
+
+
+_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+# 12 outward-facing triangles over the 8 corners above (index = 4·x + 2·y + z, 0 for −, 1 for +)
+_CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                        [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
+
+
+def _cube_triangles(v: _VoxelSet):
+    """The cubes of a voxel set as triangles (8 vertices and 12 faces per cube)."""
+    if v.half is None:
+        centre = v.origin + (v.ijk + 0.5) * v.size
+        half = np.full(len(centre), 0.5 * v.size)
+    else:
+        keep = v.half > 0
+        centre, half = v.centre[keep], v.half[keep]
+    verts = (centre[:, None, :] + half[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
+    faces = (_CUBE_FACES[None] + 8 * np.arange(len(centre))[:, None, None]).reshape(-1, 3)
+    return verts, faces.astype(np.int32)
 
 
 def _build_grids(sets: list[_VoxelSet]) -> list[VoxelGrid]:

@@ -1,0 +1,124 @@
+"""Scene assembly: parts from YAML, voxel placement, back-end equivalence, clear errors."""
+
+import numpy as np
+import pytest
+import yaml
+
+from vlsforest.cli import main
+from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.vox import make_vox, write_vox
+from vlsforest.sim import Scene
+
+
+def _rays(n, rng, lo, hi):
+    o = rng.uniform(lo - 3, hi + 3, size=(n, 3))
+    o[:, 2] = hi[2] + 5
+    tgt = rng.uniform(lo, hi, size=(n, 3))
+    d = tgt - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+def test_embree_and_grid_backends_agree(scaled):
+    rng = np.random.default_rng(1)
+    ijk = np.unique(rng.integers(-8, 8, size=(600, 3)), axis=0)
+    size = 0.25
+    origin = np.array([0.1, -0.05, 3.0])
+    half = centre = None
+    if scaled:
+        half = rng.uniform(0.02, 0.125, len(ijk))
+        centre = origin + (ijk + 0.5) * size + rng.uniform(-1, 1, (len(ijk), 3)) * (0.125 - half)[:, None]
+    res = []
+    for backend in ("embree", "grid"):
+        sc = Scene(voxel_backend=backend)
+        sc.add_voxels(5, ijk, origin, size, half, centre)
+        lo, hi = sc.bounds()
+        o, d = _rays(4000, np.random.default_rng(2), lo, hi)
+        res.append(sc.trace(o, d))
+    (t1, p1, c1), (t2, p2, c2) = res
+    assert np.array_equal(np.isfinite(t1), np.isfinite(t2))
+    hit = np.isfinite(t1)
+    assert hit.mean() > 0.3
+    assert np.abs(t1[hit] - t2[hit]).max() < 1e-4  # Embree is float32
+    assert (p1 == p2).all()
+    assert np.abs(c1[hit] - c2[hit]).max() < 1e-3
+
+
+def test_vox_scaled_placement(tmp_path):
+    ijk = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    pad = np.array([8.0, 2.0, 0.0])
+    vox = make_vox(ijk, 1.0, [10.0, 20.0, 30.0], columns={"PadBVTotal": pad}, max_pad=8.0)
+    write_vox(tmp_path / "c.vox", vox)
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"parts": [
+        {"id": 1, "type": "vox", "path": "c.vox", "mode": "scaled", "alpha": 0.5}]}))
+    sc = Scene.from_yaml(tmp_path / "s.yaml")
+    assert sc.n_voxels == 2  # the PAD-0 voxel carries no cube
+    # nadir rays through the cell centres: top faces at centre z + half size
+    o = np.array([[10.5, 20.5, 40.0], [11.5, 20.5, 40.0], [12.5, 20.5, 40.0]])
+    d = np.tile([0.0, 0.0, -1.0], (3, 1))
+    t, part, cos = sc.trace(o, d)
+    half = 0.5 * (pad[:2] / 8.0) ** 0.5
+    assert t[:2] == pytest.approx(40.0 - (30.5 + half), abs=1e-5)
+    assert np.isinf(t[2])
+    assert cos[:2] == pytest.approx(1.0)
+
+
+def test_random_shift_stays_in_cell(tmp_path):
+    rng = np.random.default_rng(0)
+    ijk = np.unique(rng.integers(0, 20, size=(500, 3)), axis=0)
+    pad = rng.uniform(0.1, 5.0, len(ijk))
+    write_vox(tmp_path / "c.vox", make_vox(ijk, 0.25, [0, 0, 0], columns={"PadBVTotal": pad}, max_pad=5.0))
+    cfg = {"parts": [{"id": 1, "type": "vox", "path": "c.vox", "mode": "scaled", "random_shift": True,
+                      "seed": 4}]}
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(cfg))
+    sc = Scene.from_yaml(tmp_path / "s.yaml")
+    v = sc._voxelsets[0]
+    lo = (v.ijk * 0.25)
+    assert ((v.centre - v.half[:, None]) >= lo - 1e-12).all()
+    assert ((v.centre + v.half[:, None]) <= lo + 0.25 + 1e-12).all()
+    assert np.abs(v.centre - (lo + 0.125)).max() > 0.01  # really shifted
+    assert (v.half <= 0.125 + 1e-15).all()
+
+
+def test_real_vox_fixed_reads():
+    from pathlib import Path
+
+    real = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+    if not (real / "F_BR08_08_crown_250.vox").is_file():
+        pytest.skip("real data absent")
+    sc = Scene.from_dict({"parts": [{"id": 1, "type": "vox", "path": str(real / "F_BR08_08_crown_250.vox")},
+                                    {"id": 2, "type": "mesh", "path": str(real / "F_BR08_08_stem_Poisson.obj")}]})
+    assert sc.n_voxels == 6185
+    lo, hi = sc.bounds()
+    assert hi[2] == pytest.approx(247.875 + 87 * 0.25, abs=0.25)
+
+
+@pytest.mark.parametrize("cfg,msg", [
+    ({"parts": []}, "non-empty"),
+    ({"parts": [{"id": 1, "type": "cone"}]}, "type"),
+    ({"parts": [{"id": 1, "type": "plane", "z": 0, "extent": [1, 0, 0, 1]}]}, "extent"),
+    ({"parts": [{"id": 1, "type": "plane", "z": 0, "extent": [0, 0, 1, 1], "reflectance": 50}]}, "reflectance"),
+    ({"parts": [{"id": 1, "type": "plane", "z": 0, "extent": [0, 0, 1, 1], "colour": 1}]}, "colour"),
+    ({"parts": [{"id": 1, "type": "plane", "z": 0, "extent": [0, 0, 1, 1]},
+                {"id": 1, "type": "plane", "z": 1, "extent": [0, 0, 1, 1]}]}, "twice"),
+    ({"parts": [{"id": 1, "type": "voxels", "path": "x.csv", "size": 0}]}, "size"),
+    ({"parts": [], "extra": 1}, "extra"),
+])
+def test_scene_config_errors(cfg, msg):
+    with pytest.raises(ConfigError, match=msg):
+        Scene.from_dict(cfg)
+
+
+def test_missing_mesh_file_is_input_error(tmp_path):
+    with pytest.raises(InputDataError, match="nope.obj"):
+        Scene.from_dict({"parts": [{"id": 1, "type": "mesh", "path": "nope.obj"}]}, base_dir=tmp_path)
+
+
+def test_cli_bad_scene_exit_2(tmp_path, capsys):
+    (tmp_path / "scene.yaml").write_text("parts:\n  - {id: 1, type: plane, z: 0\n")  # broken YAML
+    (tmp_path / "survey.yaml").write_text("scanner: riegl_vq780i\n")
+    rc = main(["simulate", str(tmp_path / "scene.yaml"), str(tmp_path / "survey.yaml"), "-o", str(tmp_path / "o.laz")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "line" in err and "Traceback" not in err
+    assert not (tmp_path / "o.laz").exists()
