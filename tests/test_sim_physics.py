@@ -192,3 +192,29 @@ def test_weighted_return_position_lies_on_the_hit_surface():
     xw = weighted.points["xyz"][:, 0]
     assert (xw >= 0).all() and (xw <= 2 / 3 * 0.5e-3 * 300 + 1e-9).all()
     assert np.abs(weighted.points["xyz"][:, 2]).max() < 1e-6
+
+
+def test_face_labels_reach_the_returns(tmp_path):
+    from vlsforest.io.las import read_las
+    from vlsforest.sim import write_points
+
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    # a horizontal square at z = 5 over x < 0 made of two triangles labelled 7 and 9
+    v = np.array([[-10, -10, 5], [0, -10, 5], [0, 10, 5], [-10, 10, 5]], float)
+    sc.add_mesh(2, v, [[0, 1, 2], [0, 2, 3]], face_labels=np.array([7, 9]))
+    ov = {"prf_hz": 20000, "scan_freq_hz": 20, "scan_angle_deg": 20.0, "max_scan_angle_deg": 20.0,
+          "range_min_m": 0.0}
+    res = simulate(sc, _survey(ov, _line(-1, 1, 100.0)), workers=1)
+    p = res.points
+    on_mesh = p["object_id"] == 2
+    assert on_mesh.any() and (~on_mesh).any()
+    assert set(np.unique(p["label"][on_mesh])) == {7, 9}
+    assert (p["label"][~on_mesh] == 0).all()
+    # triangle 0 is the one below the diagonal y < x + 10 … check the geometry
+    xy = p["xyz"][on_mesh, :2]
+    lab = p["label"][on_mesh]
+    below = (xy[:, 1] + 10) * 10 < (xy[:, 0] + 10) * 20 + 1e-6
+    assert (lab[below] == 7).mean() > 0.99
+    write_points(tmp_path / "l.laz", res)
+    assert np.array_equal(read_las(tmp_path / "l.laz").attrs["label"], p["label"])

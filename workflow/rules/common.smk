@@ -1,15 +1,42 @@
-# Shared helpers: config validation, target lists, parameter providers.
+# Shared helpers: config validation, wildcard constraints, target lists, parameter providers,
+# and the job environment (how shell commands find the vlsforest package).
+import hashlib
 import json
+import os
 import re
+import sys
+from pathlib import Path
 
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 
-validate(config, "../../config/schema.yaml")
+def _config_error(exc):
+    """One-line message naming the offending key of a failed schema validation."""
+    err = exc.__cause__ or exc.__context__  # the jsonschema ValidationError, if any
+    path = getattr(err, "absolute_path", None)
+    if path is None or not hasattr(err, "message"):
+        return str(exc)
+    where = ".".join(str(p) for p in path) or "(top level)"
+    return f"Invalid configuration at '{where}': {err.message} (schema: config/schema.yaml)"
+
+
+# Validate before anything else: a bad config stops here, naming the offending key, before the
+# DAG is built or any job runs. Schema defaults (e.g. plots.*.ground_z) are filled in.
+try:
+    validate(config, "../../config/schema.yaml")
+except WorkflowError as exc:
+    raise WorkflowError(_config_error(exc)) from None
 
 PLOTS = list(config["plots"])
 METHODS = list(config["methods"])
 SCENARIOS = list(config["scenarios"])
+
+#: the library's source tree, versioned together with this workflow
+LIBRARY_DIR = Path(workflow.basedir) / "workflow" / "vlsforest"
+
+#: the parts ``vlsforest demo`` writes beside scene.yaml (declared outputs of rule scene)
+DEMO_PARTS = ("stem.obj", "crown.csv")
 
 
 wildcard_constraints:
@@ -18,16 +45,82 @@ wildcard_constraints:
     scenario="|".join(map(re.escape, SCENARIOS)),
 
 
-def final_outputs():
-    """Every simulated cloud and the simulation summary."""
+# ---------------------------------------------------------------------------------------------
+# Job environment. Shell commands call ``python -m vlsforest.cli``:
+# - the interpreter running Snakemake (e.g. .venv/bin) goes first on PATH, so jobs find the
+#   project's Python without an activated venv;
+# - with --sdm conda, Snakemake puts the rule's conda env in front of that at job time, and the
+#   source tree on PYTHONPATH supplies the vlsforest package itself (envs/vlsforest.yaml holds
+#   only its dependencies).
+# Both settings are re-made whenever the Snakefile is parsed (also inside cluster jobs).
+# ---------------------------------------------------------------------------------------------
+def _prepend_env_path(name, entry):
+    """Put ``entry`` first in the os.pathsep-separated variable ``name`` (once)."""
+    parts = [p for p in os.environ.get(name, "").split(os.pathsep) if p]
+    if not parts or parts[0] != entry:
+        os.environ[name] = os.pathsep.join([entry] + [p for p in parts if p != entry])
+
+
+_prepend_env_path("PATH", os.path.dirname(sys.executable))
+_prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
+
+
+def _library_hash():
+    """Short SHA-256 over the library's source files (paths and contents).
+
+    Every rule gets it as a param. Snakemake does not see code changes inside an imported
+    package; without this a library edit would leave stale results marked up to date.
+    """
+    h = hashlib.sha256()
+    if LIBRARY_DIR.is_dir():
+        for path in sorted(LIBRARY_DIR.rglob("*")):
+            if (
+                "__pycache__" in path.parts
+                or not path.is_file()
+                or path.suffix in (".pyc", ".nbi", ".nbc")
+            ):
+                continue
+            h.update(path.relative_to(LIBRARY_DIR).as_posix().encode())
+            h.update(b"\0")
+            h.update(path.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+LIBRARY_HASH = _library_hash()
+
+
+# ---------------------------------------------------------------------------------------------
+# Targets
+# ---------------------------------------------------------------------------------------------
+def simulated_clouds():
+    """Every simulated cloud, results/{plot}/{method}/{scenario}/sim.laz."""
     return expand(
         "results/{plot}/{method}/{scenario}/sim.laz",
         plot=PLOTS,
         method=METHODS,
         scenario=SCENARIOS,
-    ) + ["results/summary/simulations.csv"]
+    )
 
 
+def pulse_tables():
+    """Every per-pulse table, results/{plot}/{method}/{scenario}/pulses.npz."""
+    return expand(
+        "results/{plot}/{method}/{scenario}/pulses.npz",
+        plot=PLOTS,
+        method=METHODS,
+        scenario=SCENARIOS,
+    )
+
+
+def final_outputs():
+    """The default target: every simulated cloud and the simulation summary."""
+    return simulated_clouds() + ["results/summary/simulations.csv"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Params providers (whole config blocks as canonical JSON, so any new key is tracked)
+# ---------------------------------------------------------------------------------------------
 def plot_param(wildcards):
     """The plot's config block (tracked as a param)."""
     return json.dumps(config["plots"][wildcards.plot], sort_keys=True)
@@ -41,3 +134,21 @@ def method_param(wildcards):
 def scenario_param(wildcards):
     """The scenario's config block (tracked as a param)."""
     return json.dumps(config["scenarios"][wildcards.scenario], sort_keys=True)
+
+
+def scenario_seed(wildcards):
+    """The scenario's own ``seed`` if it sets one, else the study's master ``seed``."""
+    return int(config["scenarios"][wildcards.scenario].get("seed", config["seed"]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Resources (portable: mem_mb, runtime in minutes); retried jobs get more
+# ---------------------------------------------------------------------------------------------
+def simulate_mem_mb(wildcards, attempt):
+    """Memory of a simulation job: the tracer's BVH and pulse blocks, doubled per retry."""
+    return 8000 * attempt
+
+
+def simulate_runtime(wildcards, attempt):
+    """Wall time (minutes) of a simulation job, doubled per retry."""
+    return 120 * attempt

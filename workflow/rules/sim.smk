@@ -1,4 +1,4 @@
-# Simulation per plot × method × scenario, and a summary table.
+# Survey planning and simulation per plot × method × scenario, and a summary table.
 
 
 rule survey:
@@ -10,20 +10,22 @@ rule survey:
         "logs/survey/{plot}_{method}_{scenario}.log",
     conda:
         "../../envs/vlsforest.yaml"
-    params:
-        scenario=scenario_param,
-        seed=config["seed"],
     resources:
         mem_mb=1000,
         runtime=5,
+    params:
+        scenario=scenario_param,
+        seed=scenario_seed,
+        library=LIBRARY_HASH,
     shell:
-        "vlsforest plan --scene {input.scene} --scenario-json '{params.scenario}' "
+        "python -m vlsforest.cli plan --scene {input.scene} --scenario-json {params.scenario:q} "
         "--seed {params.seed} -o {output.survey} > {log} 2>&1"
 
 
 rule simulate:
     input:
         scene="results/{plot}/{method}/scene/scene.yaml",
+        parts=expand("results/{{plot}}/{{method}}/scene/{part}", part=DEMO_PARTS),
         survey="results/{plot}/{method}/{scenario}/survey.yaml",
     output:
         laz="results/{plot}/{method}/{scenario}/sim.laz",
@@ -34,39 +36,35 @@ rule simulate:
         "logs/benchmarks/simulate/{plot}_{method}_{scenario}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
-    threads: workflow.cores
+    # capped by --cores locally; on a cluster (no --cores) the profile's set-threads decides.
+    # Not `workflow.cores`: that raises when no --cores is given (cluster runs).
+    threads: 16
     resources:
-        mem_mb=8000,
-        runtime=120,
+        mem_mb=simulate_mem_mb,
+        runtime=simulate_runtime,
     params:
-        seed=config["seed"],
+        seed=scenario_seed,
+        library=LIBRARY_HASH,
     shell:
-        "vlsforest simulate {input.scene} {input.survey} -o {output.laz} --pulses {output.pulses} "
-        "--seed {params.seed} --workers {threads} > {log} 2>&1"
+        "python -m vlsforest.cli simulate {input.scene} {input.survey} -o {output.laz} "
+        "--pulses {output.pulses} --seed {params.seed} --workers {threads} > {log} 2>&1"
 
 
 rule simulation_summary:
     input:
-        laz=expand(
-            "results/{plot}/{method}/{scenario}/sim.laz",
-            plot=PLOTS,
-            method=METHODS,
-            scenario=SCENARIOS,
-        ),
-        pulses=expand(
-            "results/{plot}/{method}/{scenario}/pulses.npz",
-            plot=PLOTS,
-            method=METHODS,
-            scenario=SCENARIOS,
-        ),
+        laz=simulated_clouds(),
+        pulses=pulse_tables(),
     output:
         csv="results/summary/simulations.csv",
     log:
         "logs/summary/simulations.log",
+    localrule: True
     conda:
         "../../envs/vlsforest.yaml"
     resources:
         mem_mb=2000,
         runtime=10,
+    params:
+        library=LIBRARY_HASH,
     shell:
-        "vlsforest summarize-sims {input.laz} -o {output.csv} > {log} 2>&1"
+        "python -m vlsforest.cli summarize-sims {input.laz} -o {output.csv} > {log} 2>&1"

@@ -16,7 +16,7 @@ from vlsforest import __version__
 from vlsforest.errors import VlsforestError
 
 #: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
-COMMANDS = ("demo", "plan", "simulate", "detect", "summarize-sims", "metrics")
+COMMANDS = ("synth", "demo", "plan", "simulate", "detect", "summarize-sims", "metrics")
 
 
 def module_name(command: str) -> str:

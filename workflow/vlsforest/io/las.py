@@ -6,12 +6,14 @@ per-point attribute arrays named like laspy's dimensions (``intensity``, ``retur
 ``classification``) and any extra dimensions (``object_id``, ``amplitude``, ``tree_id`` …).
 
 Files are written as LAS 1.4, point format 6 (LAZ when the name ends in ``.laz``) with a fixed
-scale of 0.1 mm and an offset rounded to whole metres, so that the same points give the same
-bytes.
+scale of 0.1 mm, an offset rounded to whole metres and a fixed header date (2021-01-01, or
+``SOURCE_DATE_EPOCH`` when set), so that the same points give the same bytes.
 """
 
 from __future__ import annotations
 
+import datetime
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,6 +132,14 @@ def read_las(path, require: tuple[str, ...] = (), allow_empty: bool = False) -> 
     return PointCloud(xyz, attrs)
 
 
+def _creation_date() -> datetime.date:
+    """The header date: ``SOURCE_DATE_EPOCH`` if set, else a fixed date, so bytes are reproducible."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch and epoch.isdigit():
+        return datetime.datetime.fromtimestamp(int(epoch), tz=datetime.timezone.utc).date()
+    return datetime.date(2021, 1, 1)
+
+
 def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     """Write a cloud as LAS 1.4 point format 6 (LAZ if ``path`` ends in ``.laz``).
 
@@ -153,6 +163,9 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = laspy.LasHeader(point_format=6, version="1.4")
+    header.creation_date = _creation_date()
+    header.generating_software = "vlsforest"
+    header.system_identifier = "vlsforest"
     xyz = cloud.xyz
     if len(xyz):
         header.offsets = np.floor(xyz.min(axis=0))

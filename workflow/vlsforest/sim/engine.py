@@ -131,6 +131,7 @@ class _Job:
         self.shin = np.array([m.shininess for m in mats] + [1.0])
         self.object_id = np.array([p.object_id for p in scene.parts] + [0], dtype=np.int32)
         self.classification = np.array([p.classification for p in scene.parts] + [0], dtype=np.uint8)
+        self.labels = bool(getattr(scene, "has_labels", False))
         self.max_offset = float(np.abs(self.pattern.offsets).max()) * np.sqrt(2.0)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
@@ -166,7 +167,10 @@ def _trace_and_detect(job: _Job, batch, rng):
     nl = len(live)
     dirs = subray_directions(batch.direction[live], batch.scan_dir[live], pat).reshape(-1, 3)
     origins = np.repeat(batch.origin[live], ns, axis=0)
-    t, part, cos_inc = job.scene.trace(origins, dirs)
+    if job.labels:
+        t, part, cos_inc, label = job.scene.trace(origins, dirs, with_labels=True)
+    else:
+        t, part, cos_inc = job.scene.trace(origins, dirs)
     hit = np.isfinite(t) & (t >= job.survey.scanner.range_min_m)
     idx = np.flatnonzero(hit)  # pulse-major order: live pulse = idx // ns
     hpulse = live[idx // ns]
@@ -178,6 +182,8 @@ def _trace_and_detect(job: _Job, batch, rng):
     np.cumsum(np.bincount(hpulse, minlength=m), out=ptr[1:])
     hits = dict(pulse=hpulse.astype(np.int64), subray=hsub, range=hrange, cos_inc=hcos.astype(np.float32),
                 part=hpart.astype(np.int32))
+    if job.labels:
+        hits["label"] = label[idx]
     points, n_ret = _detect(job, batch, ptr, hits, rng)
     pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
                   scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
@@ -241,6 +247,8 @@ def _detect(job: _Job, batch, ptr, hits, rng):
                   gps_time=batch.gps_time[p], scan_angle=batch.scan_angle_deg[p],
                   point_source_id=batch.source_id[p], object_id=job.object_id[hp],
                   classification=job.classification[hp], pulse=batch.slot[p])
+    if "label" in hits:
+        points["label"] = hits["label"][det["hit"]]
     return points, det["n_returns"]
 
 
@@ -300,6 +308,9 @@ def _empty_block(job):
                   source_id=np.zeros(0, np.uint16), n_returns=np.zeros(0, np.int16))
     hits = dict(pulse=np.zeros(0, np.int64), subray=np.zeros(0, np.int16), range=np.zeros(0),
                 cos_inc=np.zeros(0, np.float32), part=np.zeros(0, np.int32))
+    if job.labels:
+        pts["label"] = np.zeros(0, np.uint8)
+        hits["label"] = np.zeros(0, np.uint8)
     return pts, pulses, (hits if job.keep_hits else None), 0
 
 
@@ -348,9 +359,10 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
             it = pool.map(_run_block, range(n_blocks))
         for k, r in enumerate(it):
             results.append(r)
-            if progress and (k % max(1, n_blocks // 20) == 0 or k == n_blocks - 1):
-                print(f"\rsimulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %)",
-                      end="", file=sys.stderr, flush=True)
+            if progress and (k % max(1, n_blocks // 10) == 0 or k == n_blocks - 1):
+                tty = sys.stderr.isatty()
+                print(f"{chr(13) if tty else ''}simulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %, "
+                      f"{time.perf_counter() - t0:.0f} s)", end="" if tty else "\n", file=sys.stderr, flush=True)
     except BrokenProcessPool:
         raise VlsforestError("a simulation worker process died (out of memory?); "
                              "try fewer workers (--workers 1)") from None
@@ -358,7 +370,7 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         _JOB = None
-    if progress:
+    if progress and sys.stderr.isatty():
         print(file=sys.stderr)
     if not results:
         results = [_empty_block(job)]

@@ -23,6 +23,24 @@ from vlsforest.io.las import PointCloud, write_las
 _PULSE_COLS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle", "source_id", "n_returns")
 
 
+def save_npz(path, arrays: dict) -> Path:
+    """Write arrays as a compressed ``.npz`` with fixed zip timestamps (same arrays → same bytes)."""
+    import io
+    import zipfile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in arrays:
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())
+    return path
+
+
 def write_points(path, result) -> Path:
     """Write the returns of a :class:`SimulationResult` as LAS/LAZ."""
     p = result.points
@@ -31,6 +49,8 @@ def write_points(path, result) -> Path:
     attrs["point_source_id"] = p["point_source_id"]
     attrs["object_id"] = p["object_id"].astype(np.int32)
     attrs["amplitude"] = p["amplitude"].astype(np.float32)
+    if "label" in p:
+        attrs["label"] = p["label"].astype(np.uint8)
     return write_las(path, PointCloud(p["xyz"], attrs))
 
 
@@ -49,8 +69,7 @@ def write_pulses(path, result) -> Path:
         cols.update(scan_angle=pu["scan_angle"], source_id=pu["source_id"], n_returns=pu["n_returns"])
         pd.DataFrame(cols).to_csv(path, index=False, float_format="%.9g")
     else:
-        with open(path, "wb") as fh:
-            np.savez_compressed(fh, **{k: pu[k] for k in _PULSE_COLS})
+        save_npz(path, {k: pu[k] for k in _PULSE_COLS})
     return path
 
 
@@ -69,8 +88,7 @@ def save_hits(path, result, scene, block_slots: int = 20000) -> Path:
                 part_specularity=np.array([p.material.specularity for p in parts]),
                 part_shininess=np.array([p.material.shininess for p in parts]),
                 block_slots=np.array(block_slots))
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, **data)
+    save_npz(path, data)
     return path
 
 

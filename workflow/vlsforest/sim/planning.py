@@ -7,6 +7,10 @@ into a SURVEY mapping with legs that cover the plot.
 - ``pattern: double_grid`` (ULS): lines along x, then lines along y (a double grid),
   ``line_spacing_m`` apart, covering the plot plus ``margin_m``.
 
+Lines are placed over the plot widened by ``cross_margin_m`` across track (default 0): a wide
+scanner (±90°) also samples the plot from lines far beside it, which a real campaign over a
+whole forest has.
+
 Altitudes are above the given ground elevation. Every scenario value may be overridden.
 """
 
@@ -19,7 +23,7 @@ import numpy as np
 from vlsforest.errors import ConfigError
 
 _KEYS = {"scanner", "overrides", "detector", "pattern", "altitude_m", "speed_mps", "line_spacing_m",
-         "margin_m", "n_lines", "seed", "trajectory_noise"}
+         "margin_m", "cross_margin_m", "n_lines", "seed", "trajectory_noise"}
 
 
 def _lines(lo, hi, spacing, n_lines):
@@ -60,6 +64,10 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
     for key in ("scanner", "pattern", "altitude_m", "speed_mps", "line_spacing_m"):
         if key not in scenario:
             raise ConfigError(f"{where}.{key} is required")
+    for key in ("margin_m", "cross_margin_m"):
+        v = scenario.get(key, 0.0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+            raise ConfigError(f"{where}.{key} must be a number ≥ 0, got {v!r}")
     for key in ("altitude_m", "speed_mps", "line_spacing_m"):
         v = scenario[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
@@ -67,20 +75,21 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
     xmin, ymin, xmax, ymax = (float(v) for v in extent)
     z = float(ground_z) + float(scenario["altitude_m"])
     margin = float(scenario.get("margin_m", 20.0))
+    cross = float(scenario.get("cross_margin_m", 0.0))
     spacing = float(scenario["line_spacing_m"])
     n_lines = int(scenario.get("n_lines", 0) or 0)
     legs = []
     pattern = scenario["pattern"]
     if pattern not in ("parallel", "double_grid"):
         raise ConfigError(f"{where}.pattern must be 'parallel' or 'double_grid', got {pattern!r}")
-    xs = _lines(xmin, xmax, spacing, n_lines)
+    xs = _lines(xmin - cross, xmax + cross, spacing, n_lines)
     for i, x in enumerate(xs):  # lines along y, alternating direction
         y0, y1 = (ymin - margin, ymax + margin) if i % 2 == 0 else (ymax + margin, ymin - margin)
         if legs:
             legs.append({"start": legs[-1]["end"], "end": [float(x), y0, z], "active": False})
         legs.append({"start": [float(x), y0, z], "end": [float(x), y1, z], "active": True})
     if pattern == "double_grid":
-        ys = _lines(ymin, ymax, spacing, n_lines)
+        ys = _lines(ymin - cross, ymax + cross, spacing, n_lines)
         for i, y in enumerate(ys):  # lines along x
             x0, x1 = (xmin - margin, xmax + margin) if i % 2 == 0 else (xmax + margin, xmin - margin)
             legs.append({"start": legs[-1]["end"], "end": [x0, float(y), z], "active": False})

@@ -94,6 +94,7 @@ class _Mesh:
     part: int
     vertices: np.ndarray
     faces: np.ndarray
+    labels: np.ndarray | None = None
 
 
 @dataclass
@@ -151,8 +152,12 @@ class Scene:
         self._planes.append(_Plane(idx, float(z), ext))
 
     def add_mesh(self, object_id: int, vertices, faces, material: Material | None = None,
-                 classification: int = 1, name: str = "") -> None:
-        """Add a triangle mesh (vertices (n, 3) float, faces (m, 3) int)."""
+                 classification: int = 1, name: str = "", face_labels=None) -> None:
+        """Add a triangle mesh (vertices (n, 3) float, faces (m, 3) int).
+
+        ``face_labels`` (optional, one small non-negative integer per face, e.g. the organ of a
+        tree) is written per return as the extra dimension ``label`` (hits on other parts: 0).
+        """
         v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         if len(f) == 0:
@@ -161,8 +166,14 @@ class Scene:
             raise InputDataError(f"mesh part {object_id}: NaN or infinite vertices")
         if f.min() < 0 or f.max() >= len(v):
             raise InputDataError(f"mesh part {object_id}: face index out of range")
+        lab = None
+        if face_labels is not None:
+            lab = np.asarray(face_labels)
+            if lab.shape != (len(f),) or lab.dtype.kind not in "iu" or (len(lab) and (lab.min() < 0 or lab.max() > 255)):
+                raise InputDataError(f"mesh part {object_id}: face_labels must be one integer 0–255 per face")
+            lab = lab.astype(np.uint8)
         idx = self._add_part(object_id, "mesh", material, classification, name)
-        self._meshes.append(_Mesh(idx, v, f.astype(np.int32)))
+        self._meshes.append(_Mesh(idx, v, f.astype(np.int32), lab))
 
     def add_voxels(self, object_id: int, ijk, origin, size: float, half=None, centre=None,
                    material: Material | None = None, classification: int = 1, name: str = "") -> None:
@@ -258,25 +269,36 @@ class Scene:
         self._shift = np.where(np.isfinite(lo + hi), 0.5 * (lo + hi), 0.0)
         sc = rtcore_scene.EmbreeScene()
         parts = []
+        labels = []
         for m in self._meshes:
             TriangleMesh(sc, (m.vertices - self._shift).astype(np.float32), m.faces)
             parts.append(m.part)
+            labels.append(m.labels)
         for v in self._voxelsets:
             if self._in_embree(v):
                 verts, faces = _cube_triangles(v)
                 if len(faces):
                     TriangleMesh(sc, (verts - self._shift).astype(np.float32), faces)
                     parts.append(v.part)
+                    labels.append(None)
         self._embree = sc
         self._embree_parts = np.asarray(parts, dtype=np.int32)
+        self._embree_labels = labels
 
-    def trace(self, origins, dirs):
+    @property
+    def has_labels(self) -> bool:
+        """Whether any mesh part carries per-face labels."""
+        return any(m.labels is not None for m in self._meshes)
+
+    def trace(self, origins, dirs, with_labels: bool = False):
         """Nearest hit of each ray.
 
         Parameters
         ----------
         origins, dirs : ndarray, shape (n, 3)
             Ray origins (world coordinates, float64) and unit directions.
+        with_labels : bool
+            Also return the face label of each hit (0 where none).
 
         Returns
         -------
@@ -286,6 +308,8 @@ class Scene:
             Index into :attr:`parts` (−1: none).
         cos_inc : ndarray (n,)
             |cos| of the incidence angle between ray and surface normal.
+        label : ndarray of uint8 (n,)
+            Only with ``with_labels``.
         """
         o = np.ascontiguousarray(origins, dtype=np.float64)
         d = np.ascontiguousarray(dirs, dtype=np.float64)
@@ -293,6 +317,7 @@ class Scene:
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int32)
         cos_inc = np.zeros(n)
+        label = np.zeros(n, dtype=np.uint8) if with_labels else None
         if self._meshes or any(self._in_embree(v) for v in self._voxelsets):
             if self._embree is None:
                 self._build_embree()
@@ -304,6 +329,14 @@ class Scene:
                 tt = res["tfar"][hit].astype(np.float64)
                 t[hit] = tt
                 part[hit] = self._embree_parts[gid[hit]]
+                if with_labels:
+                    hidx = np.flatnonzero(hit)
+                    g = gid[hit]
+                    prim = res["primID"][hit]
+                    for k, lab in enumerate(self._embree_labels):
+                        if lab is not None:
+                            sel = g == k
+                            label[hidx[sel]] = lab[prim[sel]]
                 nn = np.linalg.norm(ng, axis=1)
                 cos_inc[hit] = np.abs(np.einsum("ij,ij->i", ng, d[hit])) / np.where(nn > 0, nn, 1.0)
         for p in self._planes:
@@ -319,20 +352,27 @@ class Scene:
                 t[idx] = tp[idx]
                 part[idx] = p.part
                 cos_inc[idx] = np.abs(dz[idx])
+                if with_labels:
+                    label[idx] = 0
         for g in self.grids:
             tg, pg, face, _ = g.trace(o, d, t.copy())
             better = (pg >= 0) & (tg < t)
             if better.any():
                 t[better] = tg[better]
                 part[better] = pg[better]
+                if with_labels:
+                    label[better] = 0
                 axis = np.abs(face[better].astype(np.int64)) - 1
                 cos_inc[better] = np.abs(d[better, axis])
+        if with_labels:
+            return t, part, cos_inc, label
         return t, part, cos_inc
 
     def __getstate__(self):  # the Embree scene cannot be pickled; rebuilt lazily
         state = self.__dict__.copy()
         state["_embree"] = None
         state["_embree_parts"] = None
+        state["_embree_labels"] = None
         return state
 
 

@@ -72,9 +72,12 @@ def subray_energy(ranges, weights, cos_inc, reflectance_pct, n_subrays, *, avera
     """
     r = np.maximum(np.asarray(ranges, dtype=np.float64), 1e-6)
     cos_a = np.clip(np.asarray(cos_inc, dtype=np.float64), 0.0, 1.0)
-    a = np.arccos(cos_a)
-    a2 = np.where(a <= np.pi / 2, a, a - np.pi / 2)
-    brdf = (1.0 - specularity) * cos_a + specularity * np.abs(np.cos(a2)) ** shininess
+    if np.any(specularity):
+        a = np.arccos(cos_a)
+        a2 = np.where(a <= np.pi / 2, a, a - np.pi / 2)
+        brdf = (1.0 - specularity) * cos_a + specularity * np.abs(np.cos(a2)) ** shininess
+    else:  # Lambertian
+        brdf = cos_a
     # σ·Pr combined: Pe Dr² η T² ρ brdf cos a · π / (4 N R²) · 1e9 (δ cancels)
     energy = (average_power_w * weights * receiver_diameter_m ** 2 * optical_efficiency
               * reflectance_pct * brdf * cos_a * np.pi / (4.0 * n_subrays * r * r) * 1e9)

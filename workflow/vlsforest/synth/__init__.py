@@ -6,9 +6,24 @@
 * :mod:`~vlsforest.synth.trees` — :func:`generate_tree` → :class:`TreeGeometry` (triangle mesh
   with organ labels, closed stem mesh, truth measured on the geometry);
 * :mod:`~vlsforest.synth.plant_area` — :func:`true_plant_area`, the exact one-sided plant area per
-  voxel on any grid (validation of PAD estimates).
+  voxel on any grid (validation of PAD estimates);
+* :mod:`~vlsforest.synth.ground` — :class:`GroundSurface`, the gently rough plot terrain;
+* :mod:`~vlsforest.synth.forest` — plot layouts of the virtual Bretten forest
+  (:func:`forest_from_config`, :class:`PlotLayout`, :class:`TreeSpec`), their geometry
+  (:func:`generate_plot_trees`) and truth (:func:`truth_table`).
 """
 
+from vlsforest.synth.forest import (
+    DEFAULT_FOREST,
+    QUICK_FOREST,
+    PlotLayout,
+    TreeSpec,
+    forest_from_config,
+    generate_plot_trees,
+    stem_meshes,
+    truth_table,
+)
+from vlsforest.synth.ground import GroundSurface
 from vlsforest.synth.plant_area import PlantAreaGrid, true_plant_area
 from vlsforest.synth.species import (
     SPECIES,
@@ -33,4 +48,6 @@ __all__ = [
     "SPECIES", "TABLE1", "SpeciesParams", "TreeParams", "get_species", "leaf_angle_pdf",
     "sample_tree_params", "target_tree_params", "TreeGeometry", "TriMesh", "generate_tree",
     "ORGAN_STEM", "ORGAN_BRANCH", "ORGAN_FOLIAGE", "PlantAreaGrid", "true_plant_area",
+    "GroundSurface", "DEFAULT_FOREST", "QUICK_FOREST", "PlotLayout", "TreeSpec",
+    "forest_from_config", "generate_plot_trees", "truth_table", "stem_meshes",
 ]

@@ -1,0 +1,63 @@
+"""Benchmark of the virtual Bretten forest: layout of the six plots and the geometry of P5.
+
+Lays out the default forest (:data:`vlsforest.synth.DEFAULT_FOREST`), then generates every tree
+of the largest plot, P5 (0.48 ha plus a 10 m margin, 5 target beeches at 150 000 triangles and
+the surrounding trees at 40 000), and builds its truth table.  Prints tree and triangle counts,
+mesh memory, times and the peak RSS of the process.
+
+Usage: ``python benchmarks/bench_forest.py [--seed N] [--plot P5]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+
+import numpy as np
+
+from vlsforest.synth import DEFAULT_FOREST, forest_from_config, generate_plot_trees, truth_table
+
+
+def _peak_rss_mib() -> float:
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / 1024.0 if sys.platform != "darwin" else kb / 2**20
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--plot", default="P5")
+    args = ap.parse_args(argv)
+
+    t0 = time.perf_counter()
+    plots = forest_from_config(DEFAULT_FOREST, args.seed)
+    t_layout = time.perf_counter() - t0
+    print(f"layout of {len(plots)} plots:         {t_layout:8.2f} s  (incl. imports on first use)")
+    for p in plots:
+        n_t = len(p.target_ids())
+        print(f"   {p.name}: {p.area_ha():.3f} ha, {n_t} targets, "
+              f"{len(p.trees) - n_t} surrounding, ground plane {p.ground_z():.2f} m")
+    plot = {p.name: p for p in plots}[args.plot]
+    rss0 = _peak_rss_mib()
+    t0 = time.perf_counter()
+    geoms = generate_plot_trees(plot)
+    t_geom = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    df = truth_table([plot], geoms)
+    t_truth = time.perf_counter() - t0
+    ntri = np.array([g.n_triangles for g in geoms.values()])
+    tg = df["target"].to_numpy()
+    mem = sum(g.vertices.nbytes + g.faces.nbytes + g.organ.nbytes for g in geoms.values())
+    print(f"{plot.name} geometry: {len(geoms)} trees ({tg.sum()} targets), "
+          f"{ntri.sum():,} triangles (targets {ntri[tg].sum():,}, surrounding {ntri[~tg].sum():,})")
+    print(f"   generate_plot_trees: {t_geom:8.2f} s  ({t_geom / len(geoms) * 1e3:.0f} ms/tree)")
+    print(f"   truth_table:         {t_truth:8.2f} s")
+    print(f"   mesh memory {mem / 2**20:.0f} MiB; peak RSS before {rss0:.0f} MiB, "
+          f"after {_peak_rss_mib():.0f} MiB")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,506 @@
+"""Recordings of the virtual forest: multi-scan TLS, and "real" ALS and ULS with fuller physics.
+
+What a field campaign would deliver, made by scanning the leaf-level truth geometry with our
+own simulator. The recording physics (:data:`DEFAULT_RECORDING_PHYSICS`, replaceable with
+``--recording-physics FILE``) is richer than the study's simulations: the miniVUX's elliptical
+1.6 × 0.5 mrad beam (given at 50 % peak intensity, converted to the 1/e² convention), 37
+sub-rays, an energy threshold, range noise and small trajectory noise. Its keys are the
+physics-candidate ids of the diagnosis stage, per sensor::
+
+    als:
+      beam_sample_quality: 4                 # 37 sub-rays
+      detection_threshold: {min_energy: 2.0} # peak amplitude units of the energy model
+      range_noise: {sigma_m: 0.02}
+      trajectory_noise: {position_sigma_m: 0.03, attitude_sigma_deg: 0.003, correlation_s: 2.0}
+      max_returns: {n: 7}
+    uls:
+      elliptical_footprint: {major_mrad: 1.6, minor_mrad: 0.5, convention: fwhm, orientation_deg: 0}
+      …
+    tls:
+      range_noise: {sigma_m: 0.005}
+
+Every key is optional; a missing key leaves the scanner preset's value (the study's
+simulation setting). Unknown keys are an error. Further candidates (``beam_divergence``
+``{scale}``, ``waveform_window`` ``{window_ns}``, ``incidence_reflectance``
+``{specularity, shininess}``, ``reflectance`` ``{foliage, wood, ground}``) are accepted too.
+
+Scene of a plot: the rough ground as a mesh (object id 1, class 2) and per tree two mesh parts,
+wood (object id ``10·tree_id + 1``) and foliage (``10·tree_id + 2``), both labelled per face
+with the organ (0 stem, 1 branch, 2 foliage). The delivered clouds carry no object ids or
+labels; those go to ``truth/``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from vlsforest.errors import ConfigError
+from vlsforest.io.las import PointCloud, write_las
+from vlsforest.io.mesh import TriangleMesh, write_mesh
+from vlsforest.sim.engine import simulate
+from vlsforest.sim.output import save_npz
+from vlsforest.sim.planning import plan_survey
+from vlsforest.sim.scanner import fwhm_to_1e2
+from vlsforest.sim.scene import Material, Scene
+from vlsforest.sim.survey import survey_from_dict
+
+GROUND_ID = 1
+WOOD, FOLIAGE = 1, 2
+
+DEFAULT_RECORDING_PHYSICS = {
+    "als": {
+        "beam_sample_quality": 4,
+        "detection_threshold": {"min_energy": 1.0},
+        "range_noise": {"sigma_m": 0.02},
+        "trajectory_noise": {"position_sigma_m": 0.03, "attitude_sigma_deg": 0.003, "correlation_s": 2.0},
+        "max_returns": {"n": 7},
+    },
+    "uls": {
+        "beam_sample_quality": 4,
+        "elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5, "convention": "fwhm", "orientation_deg": 0.0},
+        "detection_threshold": {"min_energy": 1.0},
+        "range_noise": {"sigma_m": 0.015},
+        "trajectory_noise": {"position_sigma_m": 0.03, "attitude_sigma_deg": 0.005, "correlation_s": 2.0},
+        "max_returns": {"n": 5},
+    },
+    "tls": {
+        "range_noise": {"sigma_m": 0.005},
+    },
+}
+
+#: candidate id → allowed parameter names
+_CANDIDATES = {
+    "beam_sample_quality": None,
+    "elliptical_footprint": {"major_mrad", "minor_mrad", "convention", "orientation_deg"},
+    "beam_divergence": {"scale"},
+    "detection_threshold": {"min_energy"},
+    "waveform_window": {"window_ns"},
+    "range_noise": {"sigma_m"},
+    "trajectory_noise": {"position_sigma_m", "attitude_sigma_deg", "correlation_s"},
+    "incidence_reflectance": {"specularity", "shininess"},
+    "reflectance": {"foliage", "wood", "ground"},
+    "max_returns": {"n"},
+}
+
+#: reflectance (fraction) at the scanner wavelengths: 1064 nm (ALS), 905 nm (ULS), 1550 nm (TLS)
+REFLECTANCE = {
+    "als": {"foliage": 0.45, "wood": 0.35, "ground": 0.3},
+    "uls": {"foliage": 0.45, "wood": 0.35, "ground": 0.3},
+    "tls": {"foliage": 0.25, "wood": 0.35, "ground": 0.25},
+}
+
+#: TLS campaign defaults (VZ-400-like). The angular step is much coarser than the study's
+#: 0.017° so that a default plot records in minutes; it still gives ~1.4 cm spacing at 10 m.
+DEFAULT_TLS = {
+    "n_positions": 6,          # 5–8 positions on an ellipse around the targets
+    "ring_margin_m": 8.0,      # ellipse = targets' bounding ellipse + this margin
+    "height_m": 1.5,           # scanner height above ground
+    "h_fov_deg": 80.0,         # horizontal field of view, centred on the targets
+    "v_fov_deg": [-40.0, 60.0],
+    "step_deg": 0.08,
+    "beam_sample_quality": 2,  # 7 sub-rays (0.3 mrad: a 3 mm footprint at 10 m)
+    "tilted_min_height_m": 25.0,  # plots whose tallest target exceeds this get tilted scans
+    "n_tilted": 2,
+    "tilt_deg": 40.0,
+}
+
+#: ALS / ULS campaign settings of the study (Table 3); altitude above ground by plot
+DEFAULT_CAMPAIGN = {
+    "als": {"scanner": "riegl_vq780i", "pattern": "parallel", "speed_mps": 51.0, "line_spacing_m": 175.0,
+            "n_lines": 3, "margin_m": 25.0, "overrides": {"scan_freq_hz": 225.0},
+            "altitude_m": {"P1": 687, "P2": 725, "P3": 710, "P4": 710, "P5": 658, "P6": 658, "default": 700}},
+    "uls": {"scanner": "riegl_minivux1uav", "pattern": "double_grid", "speed_mps": 5.0, "line_spacing_m": 28.0,
+            "margin_m": 15.0, "cross_margin_m": 60.0, "repeats": 2, "overrides": {},
+            "altitude_m": {"P1": 68, "P2": 64, "P3": 72, "P4": 72, "P5": 71, "P6": 71, "default": 70}},
+}
+
+
+# ---------------------------------------------------------------------------------- physics
+def validate_recording_physics(phys, where: str = "recording_physics") -> dict:
+    """Check a recording-physics mapping (see the module docstring); return a deep copy."""
+    if not isinstance(phys, dict):
+        raise ConfigError(f"{where} must be a mapping with keys als, uls, tls")
+    out = {}
+    for sensor, block in phys.items():
+        if sensor not in ("als", "uls", "tls"):
+            raise ConfigError(f"{where}.{sensor}: unknown sensor (als, uls, tls)")
+        if block is None:
+            block = {}
+        if not isinstance(block, dict):
+            raise ConfigError(f"{where}.{sensor} must be a mapping")
+        for key, val in block.items():
+            if key not in _CANDIDATES:
+                raise ConfigError(f"{where}.{sensor}.{key}: unknown physics candidate (known: {', '.join(_CANDIDATES)})")
+            allowed = _CANDIDATES[key]
+            if allowed is None:
+                if isinstance(val, bool) or not isinstance(val, int) or not 1 <= val <= 10:
+                    raise ConfigError(f"{where}.{sensor}.{key} must be an integer 1–10")
+                continue
+            if not isinstance(val, dict):
+                raise ConfigError(f"{where}.{sensor}.{key} must be a mapping of {sorted(allowed)}")
+            for p, v in val.items():
+                if p not in allowed:
+                    raise ConfigError(f"{where}.{sensor}.{key}.{p}: unknown parameter (known: {sorted(allowed)})")
+                if p == "convention":
+                    if v not in ("fwhm", "1/e2"):
+                        raise ConfigError(f"{where}.{sensor}.{key}.convention must be 'fwhm' or '1/e2'")
+                elif isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+                    raise ConfigError(f"{where}.{sensor}.{key}.{p} must be a non-negative number, got {v!r}")
+        out[sensor] = copy.deepcopy(block)
+    return out
+
+
+def load_recording_physics(path) -> dict:
+    """Read and validate a recording-physics YAML file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such recording-physics file")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+    return validate_recording_physics(data or {}, where=str(path))
+
+
+def physics_overrides(block: dict, base_divergence) -> tuple[dict, dict | None]:
+    """Scanner overrides and trajectory noise for one sensor's physics block."""
+    ov: dict = {}
+    if "beam_sample_quality" in block:
+        ov["beam_sample_quality"] = int(block["beam_sample_quality"])
+    div = np.asarray(base_divergence, dtype=float)
+    if "elliptical_footprint" in block:
+        e = block["elliptical_footprint"]
+        major, minor = float(e.get("major_mrad", div[0])), float(e.get("minor_mrad", div[1]))
+        if e.get("convention", "fwhm") == "fwhm":
+            major, minor = float(fwhm_to_1e2(major)), float(fwhm_to_1e2(minor))
+        div = np.array([major, minor])
+        ov["beam_orientation_deg"] = float(e.get("orientation_deg", 0.0))
+    if "beam_divergence" in block:
+        div = div * float(block["beam_divergence"].get("scale", 1.0))
+    if "elliptical_footprint" in block or "beam_divergence" in block:
+        ov["beam_divergence_mrad"] = [float(div[0]), float(div[1])]
+    if "detection_threshold" in block:
+        ov["min_energy"] = float(block["detection_threshold"].get("min_energy", 0.0))
+    if "waveform_window" in block:
+        ov["window_size_ns"] = float(block["waveform_window"]["window_ns"])
+    if "range_noise" in block:
+        ov["range_noise_m"] = float(block["range_noise"].get("sigma_m", 0.0))
+    if "max_returns" in block:
+        ov["max_returns"] = int(block["max_returns"].get("n", 0))
+    traj = None
+    if "trajectory_noise" in block:
+        t = block["trajectory_noise"]
+        traj = {"position_sigma_m": float(t.get("position_sigma_m", 0.0)),
+                "attitude_sigma_deg": float(t.get("attitude_sigma_deg", 0.0)),
+                "correlation_s": float(t.get("correlation_s", 1.0))}
+    return ov, traj
+
+
+# ---------------------------------------------------------------------------------- scenes
+def plot_scene(plot, geometries: dict, sensor: str, physics: dict | None = None) -> Scene:
+    """The truth scene of a plot for one sensor: rough ground mesh + trees (wood, foliage)."""
+    physics = physics or {}
+    refl = dict(REFLECTANCE[sensor])
+    refl.update(physics.get("reflectance", {}))
+    ks = physics.get("incidence_reflectance", {})
+    spec, shin = float(ks.get("specularity", 0.0)), float(ks.get("shininess", 10.0))
+    sc = Scene()
+    xmin, ymin, xmax, ymax = _scene_extent(plot)
+    g = plot.ground.mesh((xmin, ymin, xmax, ymax), spacing=1.0)
+    sc.add_mesh(GROUND_ID, g.vertices, g.faces, Material(refl["ground"], spec, shin), classification=2,
+                name="ground", face_labels=np.full(len(g.faces), 255, dtype=np.uint8))
+    for tid in sorted(geometries):
+        geo = geometries[tid]
+        wood = geo.organ != 2
+        for grp, sel, r, cls in ((WOOD, wood, refl["wood"], 5), (FOLIAGE, ~wood, refl["foliage"], 5)):
+            if sel.any():
+                f = geo.faces[sel]
+                used, inv = np.unique(f, return_inverse=True)
+                sc.add_mesh(10 * tid + grp, geo.vertices[used], inv.reshape(-1, 3), Material(r, spec, shin),
+                            classification=cls, name=f"tree {tid}", face_labels=geo.organ[sel].astype(np.uint8))
+    return sc
+
+
+def _scene_extent(plot):
+    xs = [t.x for t in plot.trees]
+    ys = [t.y for t in plot.trees]
+    pad = 12.0
+    xmin, ymin, xmax, ymax = plot.extent
+    return (min(xmin, min(xs)) - pad, min(ymin, min(ys)) - pad, max(xmax, max(xs)) + pad, max(ymax, max(ys)) + pad)
+
+
+# ---------------------------------------------------------------------------------- TLS
+def tls_positions(plot, cfg: dict) -> list[dict]:
+    """Scan positions on an ellipse around the targets (+ tilted extra scans for tall trees)."""
+    targets = [t for t in plot.trees if t.target]
+    tx = np.array([t.x for t in targets])
+    ty = np.array([t.y for t in targets])
+    cx, cy = float(tx.mean()), float(ty.mean())
+    ax = float(np.abs(tx - cx).max()) + cfg["ring_margin_m"]
+    ay = float(np.abs(ty - cy).max()) + cfg["ring_margin_m"]
+    n = int(cfg["n_positions"])
+    out = []
+    for k in range(n):
+        phi = 2 * np.pi * k / n + np.pi / n
+        x, y = cx + ax * np.cos(phi), cy + ay * np.sin(phi)
+        z = float(plot.ground.z(np.array([x]), np.array([y]))[0]) + cfg["height_m"]
+        heading = float(np.degrees(np.arctan2(cx - x, cy - y)) % 360.0)  # compass azimuth towards the centre
+        out.append({"position": [float(x), float(y), z], "heading_deg": heading, "tilt_deg": 0.0})
+    tallest = max(t.params.height for t in targets)
+    if tallest > cfg["tilted_min_height_m"]:
+        for k in range(int(cfg["n_tilted"])):
+            base = dict(out[(k * n) // max(int(cfg["n_tilted"]), 1)])
+            base["tilt_deg"] = float(cfg["tilt_deg"])
+            out.append(base)
+    return out
+
+
+def _tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
+    half = cfg["h_fov_deg"] / 2.0
+    ov = {"tls_h_fov_deg": [-half, half], "tls_v_fov_deg": list(cfg["v_fov_deg"]),
+          "tls_h_step_deg": cfg["step_deg"], "tls_v_step_deg": cfg["step_deg"],
+          "beam_sample_quality": int(cfg["beam_sample_quality"])}
+    pov, _ = physics_overrides(physics, (0.3, 0.3))
+    ov.update(pov)
+    return {"scanner": "riegl_vz400", "overrides": ov, "seed": seed,
+            "platform": {"type": "static", "positions": [pos]}, "detector": {"mode": "physical"}}
+
+
+# ---------------------------------------------------------------------------------- airborne
+def airborne_survey(plot, sensor: str, campaign: dict, physics: dict, seed: int) -> list[dict]:
+    """Survey mapping(s) of the "real" ALS or ULS campaign over a plot (ULS: repeated grids)."""
+    c = dict(campaign)
+    alt = c.pop("altitude_m")
+    alt = alt.get(plot.name, alt.get("default")) if isinstance(alt, dict) else alt
+    repeats = int(c.pop("repeats", 1))
+    from vlsforest.sim.scanner import PRESETS
+
+    base_div = PRESETS[c["scanner"]].beam_divergence_mrad
+    pov, traj = physics_overrides(physics, base_div)
+    ov = dict(c.pop("overrides", {}) or {})
+    ov.update(pov)
+    c["overrides"] = ov
+    c["altitude_m"] = float(alt)
+    c["detector"] = {"mode": "physical"}
+    if traj:
+        c["trajectory_noise"] = traj
+    surveys = []
+    for r in range(repeats):
+        ext = list(plot.extent)
+        if r % 2 == 1:  # a second grid shifted by half a line spacing
+            s = c["line_spacing_m"] / 2.0
+            ext = [ext[0] + s, ext[1] + s, ext[2] + s, ext[3] + s]
+        d = plan_survey(c, ext, plot.ground_z(), where=f"recordings.{sensor}")
+        d["seed"] = int(seed) + 7919 * r
+        surveys.append(d)
+    return surveys
+
+
+# ---------------------------------------------------------------------------------- main
+def _log(msg, quiet):
+    if not quiet:
+        print(f"synth: {msg}", file=sys.stderr, flush=True)
+
+
+def _write_cloud(path, res, gps_offset=0.0, extra_attrs=None):
+    p = res.points
+    attrs = {k: p[k] for k in ("intensity", "return_number", "number_of_returns", "scan_angle", "classification")}
+    attrs["gps_time"] = p["gps_time"] + gps_offset
+    attrs["point_source_id"] = p["point_source_id"]
+    if extra_attrs:
+        attrs.update(extra_attrs)
+    write_las(path, PointCloud(p["xyz"], attrs))
+
+
+def _truth_labels(path, res):
+    oid = res.points["object_id"].astype(np.int64)
+    tree = np.where(oid >= 10, oid // 10, 0).astype(np.int32)
+    organ = res.points.get("label", np.full(len(oid), 255, np.uint8)).astype(np.uint8)
+    save_npz(path, {"tree_id": tree, "organ": organ})
+
+
+def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict, campaign: dict, seed: int,
+                workers=None, quiet=False, sensors=("tls", "als", "uls")) -> dict:
+    """Record one plot: TLS scans, ALS and ULS; write clouds, scan table, trajectories, truth."""
+    pdir = out / "plots" / plot.name
+    tdir = out / "truth" / plot.name
+    timings = {}
+    if "tls" in sensors:
+        t0 = time.perf_counter()
+        scene = plot_scene(plot, geometries, "tls", physics.get("tls", {}))
+        rows = []
+        gps = 0.0
+        for k, pos in enumerate(tls_positions(plot, tls_cfg), start=1):
+            sv = _tls_survey(pos, tls_cfg, physics.get("tls", {}), seed + 101 * k)
+            survey = survey_from_dict(sv)
+            res = simulate(scene, survey, workers=workers)
+            # one scan = one source id: the scan number
+            res.points["point_source_id"] = np.full(len(res.points["xyz"]), k, np.uint16)
+            _write_cloud(pdir / "tls" / f"scan_{k}.laz", res, gps_offset=gps)
+            _truth_labels(tdir / "tls" / f"scan_{k}_labels.npz", res)
+            (pdir / "tls" / f"scan_{k}.survey.yaml").write_text(yaml.safe_dump(sv, sort_keys=False))
+            s = survey.scanner
+            rows.append({"scan_id": k, "x": pos["position"][0], "y": pos["position"][1], "z": pos["position"][2],
+                         "heading_deg": pos["heading_deg"], "tilt_deg": pos["tilt_deg"],
+                         "h_fov_start_deg": s.tls_h_fov_deg[0], "h_fov_end_deg": s.tls_h_fov_deg[1],
+                         "v_fov_min_deg": s.tls_v_fov_deg[0], "v_fov_max_deg": s.tls_v_fov_deg[1],
+                         "h_step_deg": s.tls_h_step_deg, "v_step_deg": s.tls_v_step_deg, "prf_hz": s.prf_hz,
+                         "beam_divergence_mrad": s.beam_divergence_mrad[0], "gps_time_start": gps,
+                         "n_shots": survey.n_slots, "n_points": len(res.points["xyz"])})
+            gps += survey.n_slots / s.prf_hz + 1.0
+            _log(f"{plot.name} TLS scan {k}: {survey.n_slots} shots, {len(res.points['xyz'])} points "
+                 f"({res.timings['total']:.1f} s)", quiet)
+        pd.DataFrame(rows).to_csv(pdir / "tls" / "scans.csv", index=False, float_format="%.9g")
+        timings["tls_s"] = time.perf_counter() - t0
+    for sensor in ("als", "uls"):
+        if sensor not in sensors:
+            continue
+        t0 = time.perf_counter()
+        scene = plot_scene(plot, geometries, sensor, physics.get(sensor, {}))
+        clouds, trajs, labels = [], [], []
+        gps = 0.0
+        for r, sv in enumerate(airborne_survey(plot, sensor, campaign[sensor], physics.get(sensor, {}), seed)):
+            survey = survey_from_dict(sv)
+            res = simulate(scene, survey, workers=workers)
+            res.points["gps_time"] = res.points["gps_time"] + gps
+            res.points["point_source_id"] = (res.points["point_source_id"].astype(np.int64) + 100 * r).astype(np.uint16)
+            tr = survey.trajectory()
+            tr["gps_time"] += gps
+            tr["source_id"] = tr["source_id"].astype(np.int64) + 100 * r
+            trajs.append(tr)
+            clouds.append(res)
+            gps += survey.duration_s + 10.0
+        merged = _merge_results(clouds)
+        _write_cloud(pdir / f"{sensor}.laz", merged)
+        _truth_labels(tdir / f"{sensor}_labels.npz", merged)
+        pd.concat(trajs).to_csv(pdir / f"trajectory_{sensor}.csv", index=False, float_format="%.9g")
+        timings[f"{sensor}_s"] = time.perf_counter() - t0
+        _log(f"{plot.name} {sensor.upper()}: {len(merged.points['xyz'])} points "
+             f"({timings[f'{sensor}_s']:.1f} s)", quiet)
+    return timings
+
+
+def _merge_results(results):
+    from vlsforest.sim.engine import SimulationResult
+
+    pts = {k: np.concatenate([r.points[k] for r in results]) for k in results[0].points}
+    return SimulationResult(pts, {}, None, {})
+
+
+def write_plot_info(plot, out: Path) -> None:
+    """``plots/{plot}/plot.json``: what the field campaign knows (extent, ground, target stems)."""
+    pdir = out / "plots" / plot.name
+    pdir.mkdir(parents=True, exist_ok=True)
+    info = {"plot": plot.name, "extent": [float(v) for v in plot.extent], "ground_z": float(plot.ground_z()),
+            "area_ha": float(plot.area_ha()),
+            "targets": [{"tree_id": int(t.tree_id), "species": t.species, "x": float(t.x), "y": float(t.y)}
+                        for t in plot.trees if t.target]}
+    (pdir / "plot.json").write_text(json.dumps(info, indent=2) + "\n")
+
+
+def write_truth_stems(geometries: dict, plot, out: Path) -> None:
+    """Closed stem meshes of the target trees (truth for mesh validation)."""
+    for t in plot.trees:
+        if t.target:
+            sm = geometries[t.tree_id].stem_mesh
+            write_mesh(out / "truth" / plot.name / "stems" / f"{t.tree_id}.ply", TriangleMesh(sm.vertices, sm.faces))
+
+
+def synth_settings(cfg: dict | None) -> dict:
+    """Resolve the synth settings of a workflow config: ``forest``, ``tls``, ``recordings`` blocks.
+
+    ``forest`` may be a full forest block (see :mod:`vlsforest.synth.forest`) or
+    ``{preset: default | quick}``; ``tls`` and ``recordings.{als,uls}`` override the defaults
+    key by key.
+    """
+    from vlsforest.synth import forest as _forest
+
+    cfg = dict(cfg or {})
+    fc = cfg.get("forest", {"preset": "default"})
+    if not isinstance(fc, dict):
+        raise ConfigError("forest must be a mapping")
+    if "preset" in fc:
+        presets = {"default": _forest.DEFAULT_FOREST, "quick": _forest.QUICK_FOREST}
+        if fc["preset"] not in presets:
+            raise ConfigError(f"forest.preset must be one of {sorted(presets)}, got {fc['preset']!r}")
+        base = copy.deepcopy(presets[fc["preset"]])
+        base.update({k: v for k, v in fc.items() if k != "preset"})
+        fc = base
+    tls = dict(DEFAULT_TLS)
+    for k, v in (cfg.get("tls") or {}).items():
+        if k not in DEFAULT_TLS:
+            raise ConfigError(f"tls.{k}: unknown key (known: {', '.join(DEFAULT_TLS)})")
+        tls[k] = v
+    if isinstance(tls["n_positions"], bool) or not isinstance(tls["n_positions"], int) or tls["n_positions"] < 1:
+        raise ConfigError(f"tls.n_positions must be an integer ≥ 1, got {tls['n_positions']!r}")
+    if not tls["step_deg"] > 0:
+        raise ConfigError(f"tls.step_deg must be > 0, got {tls['step_deg']!r}")
+    camp = copy.deepcopy(DEFAULT_CAMPAIGN)
+    for sensor, block in (cfg.get("recordings") or {}).items():
+        if sensor not in camp:
+            raise ConfigError(f"recordings.{sensor}: unknown sensor (als, uls)")
+        camp[sensor].update(block or {})
+    return {"forest": fc, "tls": tls, "recordings": camp}
+
+
+def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = None, plots=None,
+               workers=None, quiet: bool = False) -> dict:
+    """Build the virtual forest and record it (the ``vlsforest synth`` command).
+
+    Parameters
+    ----------
+    cfg : dict
+        Workflow config (its ``forest``, ``tls``, ``recordings`` blocks; see :func:`synth_settings`).
+    out_dir : path
+        Output folder (``plots/``, ``truth/``).
+    seed : int
+        Master seed: same seed → byte-identical outputs.
+    physics : dict, optional
+        Recording physics (default :data:`DEFAULT_RECORDING_PHYSICS`).
+    plots : list of str, optional
+        Plot names to build (default all).
+
+    Returns
+    -------
+    dict
+        Timings per plot and stage.
+    """
+    from vlsforest.synth.forest import forest_from_config, generate_plot_trees, truth_table
+
+    st = synth_settings(cfg)
+    physics = validate_recording_physics(DEFAULT_RECORDING_PHYSICS if physics is None else physics)
+    layouts = forest_from_config(st["forest"], seed)
+    names = [p.name for p in layouts]
+    if plots:
+        unknown = [p for p in plots if p not in names]
+        if unknown:
+            raise ConfigError(f"--plots: unknown plot(s) {unknown} (known: {names})")
+        layouts = [p for p in layouts if p.name in plots]
+    out = Path(out_dir)
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    (out / "truth" / "recording_physics.yaml").write_text(yaml.safe_dump(physics, sort_keys=True))
+    (out / "truth" / "synth_settings.yaml").write_text(yaml.safe_dump({"seed": int(seed), **st}, sort_keys=True))
+    truth, timings = [], {}
+    for plot in layouts:
+        t0 = time.perf_counter()
+        geoms = generate_plot_trees(plot)
+        _log(f"{plot.name}: {len(geoms)} trees, {sum(g.n_triangles for g in geoms.values()):,} triangles "
+             f"({time.perf_counter() - t0:.1f} s)", quiet)
+        write_plot_info(plot, out)
+        write_truth_stems(geoms, plot, out)
+        truth.append(truth_table([plot], geoms))
+        tm = record_plot(plot, geoms, out, physics, st["tls"], st["recordings"], seed, workers=workers, quiet=quiet)
+        tm["trees_s"] = t0
+        timings[plot.name] = tm
+        del geoms
+    table = pd.concat(truth, ignore_index=True)
+    table.to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
+    return timings
