@@ -28,6 +28,7 @@ if not workflow.overwrite_configfiles:
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/synth.smk"
 include: "workflow/rules/scene.smk"
 include: "workflow/rules/sim.smk"
 

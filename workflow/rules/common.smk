@@ -65,15 +65,19 @@ _prepend_env_path("PATH", os.path.dirname(sys.executable))
 _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
 
 
-def _library_hash():
-    """Short SHA-256 over the library's source files (paths and contents).
+def library_hash(*parts):
+    """Short SHA-256 over library source files (paths and contents) below ``parts``.
 
-    Every rule gets it as a param. Snakemake does not see code changes inside an imported
-    package; without this a library edit would leave stale results marked up to date.
+    Rules get it as a param, naming the sub-packages/modules they run: Snakemake does not see
+    code changes inside an imported package, and without this a library edit would leave
+    stale results marked up to date. Naming only a rule's own modules keeps an edit of, say,
+    the metrics from re-running the forest synthesis.
     """
     h = hashlib.sha256()
-    if LIBRARY_DIR.is_dir():
-        for path in sorted(LIBRARY_DIR.rglob("*")):
+    for part in parts or ("",):
+        root = LIBRARY_DIR / part
+        files = [root] if root.is_file() else sorted(root.rglob("*")) if root.is_dir() else []
+        for path in files:
             if (
                 "__pycache__" in path.parts
                 or not path.is_file()
@@ -87,7 +91,11 @@ def _library_hash():
     return h.hexdigest()[:16]
 
 
-LIBRARY_HASH = _library_hash()
+#: the simulator stage's code: simulator, I/O, CLI, demo scene
+SIM_HASH = library_hash("sim", "io", "commands", "cli.py", "demo.py", "errors.py")
+#: the synthesis stage's code: the virtual forest plus the simulator it records with
+SYNTH_HASH = library_hash("synth", "sim", "io", "commands", "cli.py", "errors.py")
+
 
 
 # ---------------------------------------------------------------------------------------------
@@ -114,8 +122,14 @@ def pulse_tables():
 
 
 def final_outputs():
-    """The default target: every simulated cloud and the simulation summary."""
-    return simulated_clouds() + ["results/summary/simulations.csv"]
+    """The default target: the virtual forest, every simulated cloud, the simulation summary."""
+    return ["results/forest"] + simulated_clouds() + ["results/summary/simulations.csv"]
+
+
+def synth_param(wildcards=None):
+    """The synthesis settings (seed, forest, tls, recordings blocks) as canonical JSON."""
+    keys = ("seed", "forest", "tls", "recordings")
+    return json.dumps({k: config[k] for k in keys if k in config}, sort_keys=True)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ rule scene:
         plot=plot_param,
         method=method_param,
         seed=config["seed"],
-        library=LIBRARY_HASH,
+        library=SIM_HASH,
     shell:
         "python -m vlsforest.cli demo --plot-json {params.plot:q} --method-json {params.method:q} "
         "--seed {params.seed} -o {output.scene} > {log} 2>&1"

@@ -16,7 +16,7 @@ rule survey:
     params:
         scenario=scenario_param,
         seed=scenario_seed,
-        library=LIBRARY_HASH,
+        library=SIM_HASH,
     shell:
         "python -m vlsforest.cli plan --scene {input.scene} --scenario-json {params.scenario:q} "
         "--seed {params.seed} -o {output.survey} > {log} 2>&1"
@@ -44,7 +44,7 @@ rule simulate:
         runtime=simulate_runtime,
     params:
         seed=scenario_seed,
-        library=LIBRARY_HASH,
+        library=SIM_HASH,
     shell:
         "python -m vlsforest.cli simulate {input.scene} {input.survey} -o {output.laz} "
         "--pulses {output.pulses} --seed {params.seed} --workers {threads} > {log} 2>&1"
@@ -65,6 +65,6 @@ rule simulation_summary:
         mem_mb=2000,
         runtime=10,
     params:
-        library=LIBRARY_HASH,
+        library=SIM_HASH,
     shell:
         "python -m vlsforest.cli summarize-sims {input.laz} -o {output.csv} > {log} 2>&1"

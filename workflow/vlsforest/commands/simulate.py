@@ -27,7 +27,7 @@ def run(args) -> int:
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
-                   progress=not args.quiet)
+                   keep_pulses=args.pulses is not None, progress=not args.quiet)
     write_points(args.output, res)
     if args.pulses:
         write_pulses(args.pulses, res)

@@ -15,7 +15,9 @@ def register(sub) -> None:
                        description="Build the seeded virtual forest of CONFIG.yaml (its forest/tls/recordings "
                                    "blocks; defaults otherwise) and record it: TLS scans with scanner positions, "
                                    "'real' ALS and ULS with the recording physics, and the truth files.")
-    p.add_argument("config", help="workflow config YAML (forest:, tls:, recordings: blocks are used)")
+    p.add_argument("config", nargs="?", default=None,
+                   help="workflow config YAML (forest:, tls:, recordings:, seed: are used)")
+    p.add_argument("--config-json", default=None, help="the same settings as a JSON object (workflow use)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=None, help="master seed (default: the config's seed, else 0)")
     p.add_argument("--recording-physics", default=None, help="recording physics YAML (default: built in)")
@@ -29,15 +31,27 @@ def run(args) -> int:
     """Execute ``vlsforest synth``."""
     from vlsforest.synth.record import load_recording_physics, synthesize
 
-    path = Path(args.config)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such config file")
-    try:
-        cfg = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+    if (args.config is None) == (args.config_json is None):
+        raise ConfigError("give either CONFIG.yaml or --config-json")
+    if args.config_json is not None:
+        import json
+
+        try:
+            cfg = json.loads(args.config_json)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--config-json is not valid JSON: {exc}") from None
+        where = "--config-json"
+    else:
+        path = Path(args.config)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such config file")
+        try:
+            cfg = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+        where = str(path)
     if not isinstance(cfg, dict):
-        raise ConfigError(f"{path}: the config must be a mapping")
+        raise ConfigError(f"{where}: the config must be a mapping")
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
     physics = load_recording_physics(args.recording_physics) if args.recording_physics else None
     plots = [p.strip() for p in args.plots.split(",") if p.strip()] if args.plots else None

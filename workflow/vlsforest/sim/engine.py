@@ -34,6 +34,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError, VlsforestError
@@ -113,7 +114,8 @@ class SimulationResult:
 class _Job:
     """Everything a worker needs, shared with forked workers through a module global."""
 
-    def __init__(self, scene, survey, seed, keep_hits, block_slots):
+    def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True):
+        self.keep_pulses = keep_pulses or keep_hits
         self.scene = scene
         self.survey = survey
         self.seed = int(seed)
@@ -185,34 +187,53 @@ def _trace_and_detect(job: _Job, batch, rng):
     if job.labels:
         hits["label"] = label[idx]
     points, n_ret = _detect(job, batch, ptr, hits, rng)
-    pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
-                  scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
-                  n_returns=n_ret)
+    if job.keep_pulses:
+        pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
+                      scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
+                      n_returns=n_ret)
+    else:
+        pulses = dict(slot=batch.slot, n_returns=n_ret)
     return points, pulses, (hits if job.keep_hits else None), nl * ns
 
 
 def _beam_meets_box(origin, direction, lo, hi, max_offset):
     """Whether the cone of half-angle ``max_offset`` around each central ray meets the box."""
-    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
-        return np.zeros(len(origin), dtype=bool)
-    centre = 0.5 * (lo + hi)
-    half_diag = 0.5 * np.linalg.norm(hi - lo)
-    reach = np.linalg.norm(origin - centre, axis=1) + half_diag
-    pad = np.tan(max_offset) * reach + 1e-6
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / direction
-        t1 = (lo - pad[:, None] - origin) * inv
-        t2 = (hi + pad[:, None] - origin) * inv
-    tn = np.fmin(t1, t2)
-    tf = np.fmax(t1, t2)
-    # parallel axes: inside the slab → unbounded, else no intersection
-    par = direction == 0
-    inside = (origin >= lo - pad[:, None]) & (origin <= hi + pad[:, None])
-    tn = np.where(par, np.where(inside, -np.inf, np.inf), tn)
-    tf = np.where(par, np.where(inside, np.inf, -np.inf), tf)
-    t_enter = tn.max(axis=1)
-    t_exit = tf.min(axis=1)
-    return (t_exit >= np.maximum(t_enter, 0.0))
+    out = np.zeros(len(origin), dtype=np.bool_)
+    if np.isfinite(lo).all() and np.isfinite(hi).all():
+        _cone_box(np.ascontiguousarray(origin), np.ascontiguousarray(direction), np.asarray(lo, np.float64),
+                  np.asarray(hi, np.float64), float(np.tan(max_offset)), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _cone_box(origin, direction, lo, hi, tan_off, out):
+    half_diag = 0.5 * np.sqrt(((hi - lo) ** 2).sum())
+    c0, c1, c2 = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])
+    for i in range(origin.shape[0]):
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        reach = np.sqrt((o0 - c0) ** 2 + (o1 - c1) ** 2 + (o2 - c2) ** 2) + half_diag
+        pad = tan_off * reach + 1e-6
+        t_enter, t_exit = 0.0, np.inf
+        ok = True
+        for ax in range(3):
+            o = origin[i, ax]
+            d = direction[i, ax]
+            a = lo[ax] - pad
+            b = hi[ax] + pad
+            if d == 0.0:
+                if o < a or o > b:
+                    ok = False
+                    break
+                continue
+            t1 = (a - o) / d
+            t2 = (b - o) / d
+            if t1 > t2:
+                t1, t2 = t2, t1
+            if t1 > t_enter:
+                t_enter = t1
+            if t2 < t_exit:
+                t_exit = t2
+        out[i] = ok and t_exit >= t_enter
 
 
 def _detect(job: _Job, batch, ptr, hits, rng):
@@ -306,6 +327,8 @@ def _empty_block(job):
     pulses = dict(slot=np.zeros(0, np.int64), gps_time=np.zeros(0), origin=np.zeros((0, 3)),
                   direction=np.zeros((0, 3)), scan_dir=np.zeros((0, 3)), scan_angle=np.zeros(0),
                   source_id=np.zeros(0, np.uint16), n_returns=np.zeros(0, np.int16))
+    if not job.keep_pulses:
+        pulses = dict(slot=pulses["slot"], n_returns=pulses["n_returns"])
     hits = dict(pulse=np.zeros(0, np.int64), subray=np.zeros(0, np.int16), range=np.zeros(0),
                 cos_inc=np.zeros(0, np.float32), part=np.zeros(0, np.int32))
     if job.labels:
@@ -319,7 +342,7 @@ def _concat(dicts):
 
 
 def simulate(scene, survey, seed: int | None = None, workers: int | None = None, keep_hits: bool = False,
-             block_slots: int = 20000, progress: bool = False) -> SimulationResult:
+             block_slots: int = 20000, progress: bool = False, keep_pulses: bool = True) -> SimulationResult:
     """Run a survey over a scene.
 
     Parameters
@@ -332,6 +355,10 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
         Worker processes (default: number of CPUs, at most the number of blocks).
     keep_hits : bool
         Also return every sub-ray hit (for :func:`redetect`).
+    keep_pulses : bool
+        Keep each pulse's geometry (origin, directions, scan angle, source id) in
+        ``result.pulses``; without it only ``slot`` and ``n_returns`` are kept (less memory and
+        inter-process traffic).
     block_slots : int
         Pulse slots per block (fixes the random streams; keep it constant to compare runs).
     progress : bool
@@ -344,9 +371,10 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     global _JOB
     t0 = time.perf_counter()
     seed = survey.seed if seed is None else seed
-    job = _Job(scene, survey, seed, keep_hits, block_slots)
+    job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses)
     n_blocks = -(-survey.n_slots // job.block_slots)
-    scene.grids  # build voxel grids once, before forking
+    if hasattr(scene, "prepare"):
+        scene.prepare()  # build voxel grids and the Embree BVH once, before forking
     workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
     _JOB = job
     results = []

@@ -130,6 +130,7 @@ class Scene:
         self._embree = None
         self._embree_parts = None
         self._shift = None
+        self._bounds = None
 
     # ------------------------------------------------------------------ building
     def _add_part(self, object_id, kind, material, classification, name) -> int:
@@ -138,6 +139,7 @@ class Scene:
         self.parts.append(ScenePart(int(object_id), kind, material or Material(), int(classification), name))
         self._grids = None
         self._embree = None
+        self._bounds = None
         return len(self.parts) - 1
 
     def add_plane(self, object_id: int, z: float, extent, material: Material | None = None,
@@ -226,6 +228,11 @@ class Scene:
     # ------------------------------------------------------------------ geometry
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds (lo, hi) of the whole scene."""
+        if self._bounds is None:
+            self._bounds = self._compute_bounds()
+        return self._bounds[0].copy(), self._bounds[1].copy()
+
+    def _compute_bounds(self):
         lo = np.full(3, np.inf)
         hi = np.full(3, -np.inf)
         for p in self._planes:
@@ -274,6 +281,12 @@ class Scene:
             TriangleMesh(sc, (m.vertices - self._shift).astype(np.float32), m.faces)
             parts.append(m.part)
             labels.append(m.labels)
+        for p in self._planes:  # Embree is called anyway: two triangles beat a numpy pass
+            x0, y0, x1, y1 = p.extent
+            v = np.array([[x0, y0, p.z], [x1, y0, p.z], [x1, y1, p.z], [x0, y1, p.z]]) - self._shift
+            TriangleMesh(sc, v.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
+            parts.append(p.part)
+            labels.append(None)
         for v in self._voxelsets:
             if self._in_embree(v):
                 verts, faces = _cube_triangles(v)
@@ -289,6 +302,18 @@ class Scene:
     def has_labels(self) -> bool:
         """Whether any mesh part carries per-face labels."""
         return any(m.labels is not None for m in self._meshes)
+
+    def prepare(self) -> None:
+        """Build the voxel grids and the Embree BVH now (else lazily at the first trace).
+
+        The simulator calls it before forking its workers, which then share the structures
+        copy-on-write instead of each building its own.
+        """
+        self.grids
+        if self._embree is None and (self._meshes or any(self._in_embree(v) for v in self._voxelsets)):
+            self._build_embree()
+            # Embree commits the BVH lazily: force it with one ray
+            self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
     def trace(self, origins, dirs, with_labels: bool = False):
         """Nearest hit of each ray.
@@ -339,7 +364,7 @@ class Scene:
                             label[hidx[sel]] = lab[prim[sel]]
                 nn = np.linalg.norm(ng, axis=1)
                 cos_inc[hit] = np.abs(np.einsum("ij,ij->i", ng, d[hit])) / np.where(nn > 0, nn, 1.0)
-        for p in self._planes:
+        for p in (self._planes if self._embree is None else ()):  # analytic, float64 (no meshes)
             dz = d[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 tp = (p.z - o[:, 2]) / dz
@@ -368,7 +393,7 @@ class Scene:
             return t, part, cos_inc, label
         return t, part, cos_inc
 
-    def __getstate__(self):  # the Embree scene cannot be pickled; rebuilt lazily
+    def __getstate__(self):  # the Embree scene cannot be pickled; rebuilt lazily after unpickling
         state = self.__dict__.copy()
         state["_embree"] = None
         state["_embree_parts"] = None

@@ -70,20 +70,36 @@ def subray_energy(ranges, weights, cos_inc, reflectance_pct, n_subrays, *, avera
     atm_alpha : float
         Extinction per metre (0: no atmosphere).
     """
-    r = np.maximum(np.asarray(ranges, dtype=np.float64), 1e-6)
-    cos_a = np.clip(np.asarray(cos_inc, dtype=np.float64), 0.0, 1.0)
-    if np.any(specularity):
-        a = np.arccos(cos_a)
-        a2 = np.where(a <= np.pi / 2, a, a - np.pi / 2)
-        brdf = (1.0 - specularity) * cos_a + specularity * np.abs(np.cos(a2)) ** shininess
-    else:  # Lambertian
-        brdf = cos_a
+    r = np.ascontiguousarray(np.broadcast_to(np.asarray(ranges, dtype=np.float64), np.shape(ranges)))
+    shape = r.shape
+    n = r.size
+
+    def flat(a):
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), shape)).reshape(n)
+
     # σ·Pr combined: Pe Dr² η T² ρ brdf cos a · π / (4 N R²) · 1e9 (δ cancels)
-    energy = (average_power_w * weights * receiver_diameter_m ** 2 * optical_efficiency
-              * reflectance_pct * brdf * cos_a * np.pi / (4.0 * n_subrays * r * r) * 1e9)
-    if atm_alpha:
-        energy = energy * np.exp(-2.0 * r * atm_alpha)
-    return energy
+    scale = average_power_w * receiver_diameter_m ** 2 * optical_efficiency * np.pi / (4.0 * n_subrays) * 1e9
+    out = np.empty(n)
+    _energy_kernel(r.reshape(n), flat(weights), flat(cos_inc), flat(reflectance_pct), flat(specularity),
+                   flat(shininess), float(scale), float(atm_alpha), out)
+    return out.reshape(shape)
+
+
+@numba.njit(cache=True)
+def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
+    half_pi = np.pi / 2
+    for i in range(r.shape[0]):
+        c = min(max(cos_inc[i], 0.0), 1.0)
+        brdf = c
+        if spec[i] != 0.0:
+            a = np.arccos(c)
+            a2 = a if a <= half_pi else a - half_pi
+            brdf = (1.0 - spec[i]) * c + spec[i] * abs(np.cos(a2)) ** shin[i]
+        rr = max(r[i], 1e-6)
+        e = scale * w[i] * refl[i] * brdf * c / (rr * rr)
+        if alpha != 0.0:
+            e *= np.exp(-2.0 * rr * alpha)
+        out[i] = e
 
 
 @numba.njit(cache=True)
@@ -174,6 +190,21 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
 
 
 @numba.njit(cache=True)
+def _stable_order(x):
+    """Stable ascending order of a short array (insertion sort)."""
+    n = x.shape[0]
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        j = i
+        v = x[i]
+        while j > 0 and x[order[j - 1]] > v:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = i
+    return order
+
+
+@numba.njit(cache=True)
 def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_returns,
                 helios_rule, dedupe, max_per_pulse):
     m = ptr.shape[0] - 1
@@ -202,7 +233,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
         if b == a:
             continue
         rr = ranges[a:b]
-        order = np.argsort(rr, kind="mergesort")
+        order = _stable_order(rr)
         f = _detect_one(rr, energy[a:b], order, shape, peak_index, bin_m, win, eps, max_returns,
                         helios_rule, dedupe, wave, o_range, o_amp, o_sub)
         nret[p] = f

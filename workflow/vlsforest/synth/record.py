@@ -59,8 +59,9 @@ DEFAULT_RECORDING_PHYSICS = {
     "als": {
         "beam_sample_quality": 4,
         "detection_threshold": {"min_energy": 1.0},
-        "range_noise": {"sigma_m": 0.02},
-        "trajectory_noise": {"position_sigma_m": 0.03, "attitude_sigma_deg": 0.003, "correlation_s": 2.0},
+        "range_noise": {"sigma_m": 0.03},
+        # GNSS/INS errors of a manned survey: ~5 cm position, 0.006° attitude (7 cm at 700 m)
+        "trajectory_noise": {"position_sigma_m": 0.05, "attitude_sigma_deg": 0.006, "correlation_s": 2.0},
         "max_returns": {"n": 7},
     },
     "uls": {
@@ -98,15 +99,16 @@ REFLECTANCE = {
 }
 
 #: TLS campaign defaults (VZ-400-like). The angular step is much coarser than the study's
-#: 0.017° so that a default plot records in minutes; it still gives ~1.4 cm spacing at 10 m.
+#: 0.017° so that the default forest records in minutes; it still gives ~1.7 cm spacing at
+#: 10 m. One ray per shot: the 0.3 mrad beam is 3–9 mm wide at 10–30 m, far below the step.
 DEFAULT_TLS = {
     "n_positions": 6,          # 5–8 positions on an ellipse around the targets
     "ring_margin_m": 8.0,      # ellipse = targets' bounding ellipse + this margin
     "height_m": 1.5,           # scanner height above ground
     "h_fov_deg": 80.0,         # horizontal field of view, centred on the targets
     "v_fov_deg": [-40.0, 60.0],
-    "step_deg": 0.08,
-    "beam_sample_quality": 2,  # 7 sub-rays (0.3 mrad: a 3 mm footprint at 10 m)
+    "step_deg": 0.1,
+    "beam_sample_quality": 1,
     "tilted_min_height_m": 25.0,  # plots whose tallest target exceeds this get tilted scans
     "n_tilted": 2,
     "tilt_deg": 40.0,
@@ -341,7 +343,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         for k, pos in enumerate(tls_positions(plot, tls_cfg), start=1):
             sv = _tls_survey(pos, tls_cfg, physics.get("tls", {}), seed + 101 * k)
             survey = survey_from_dict(sv)
-            res = simulate(scene, survey, workers=workers)
+            res = simulate(scene, survey, workers=workers, keep_pulses=False)
             # one scan = one source id: the scan number
             res.points["point_source_id"] = np.full(len(res.points["xyz"]), k, np.uint16)
             _write_cloud(pdir / "tls" / f"scan_{k}.laz", res, gps_offset=gps)
@@ -369,7 +371,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         gps = 0.0
         for r, sv in enumerate(airborne_survey(plot, sensor, campaign[sensor], physics.get(sensor, {}), seed)):
             survey = survey_from_dict(sv)
-            res = simulate(scene, survey, workers=workers)
+            res = simulate(scene, survey, workers=workers, keep_pulses=False)
             res.points["gps_time"] = res.points["gps_time"] + gps
             res.points["point_source_id"] = (res.points["point_source_id"].astype(np.int64) + 100 * r).astype(np.uint16)
             tr = survey.trajectory()
@@ -496,9 +498,11 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
              f"({time.perf_counter() - t0:.1f} s)", quiet)
         write_plot_info(plot, out)
         write_truth_stems(geoms, plot, out)
-        truth.append(truth_table([plot], geoms))
+        tt = truth_table([plot], geoms)
+        tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
+        truth.append(tt)
         tm = record_plot(plot, geoms, out, physics, st["tls"], st["recordings"], seed, workers=workers, quiet=quiet)
-        tm["trees_s"] = t0
+        tm["total_s"] = time.perf_counter() - t0
         timings[plot.name] = tm
         del geoms
     table = pd.concat(truth, ignore_index=True)
