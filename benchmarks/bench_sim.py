@@ -243,7 +243,7 @@ def _timed_run(scene, survey, workers: int, las_path: Path, repeat: int = 1, pro
             prof.enable()
         c0 = _cpu_s()
         t0 = time.perf_counter()
-        r = simulate(scene, survey, seed=1, workers=workers)
+        r = simulate(scene, survey, seed=1, workers=workers, keep_pulses=False)
         t1 = time.perf_counter()
         write_points(las_path, r)
         t2 = time.perf_counter()

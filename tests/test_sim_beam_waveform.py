@@ -118,3 +118,21 @@ def test_nearest_hit_gives_object():
     r = detect_returns(np.array([0, 3]), np.array([500.0, 500.02, 507.0]), np.ones(3) * 10)
     assert r["n_returns"][0] == 2
     assert r["hit"].tolist() == [0, 2]
+
+
+def test_hit_energy_matches_subray_energy():
+    from vlsforest.sim.waveform import hit_energy
+
+    rng = np.random.default_rng(0)
+    pat = subray_pattern(3, 0.5)
+    n = 500
+    sub = rng.integers(0, pat.n, n)
+    part = rng.integers(0, 3, n)
+    r = rng.uniform(50, 800, n)
+    cos = rng.uniform(0, 1, n)
+    refl, spec, shin = np.array([20.0, 45.0, 60.0]), np.array([0.0, 0.3, 0.0]), np.array([10.0, 5.0, 10.0])
+    kw = dict(average_power_w=4, receiver_diameter_m=0.15, optical_efficiency=0.99)
+    a = hit_energy(r, sub, cos, part, pat.frac, refl, spec, shin, pat.n, range0=100.0, m2=1.2, atm_alpha=1e-4, **kw)
+    w = gaussian_weight(pat.frac[sub], r, 100.0, 1.2)
+    b = subray_energy(r, w, cos, refl[part], pat.n, specularity=spec[part], shininess=shin[part], atm_alpha=1e-4, **kw)
+    assert np.allclose(a, b, rtol=1e-12)

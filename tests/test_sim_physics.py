@@ -218,3 +218,17 @@ def test_face_labels_reach_the_returns(tmp_path):
     assert (lab[below] == 7).mean() > 0.99
     write_points(tmp_path / "l.laz", res)
     assert np.array_equal(read_las(tmp_path / "l.laz").attrs["label"], p["label"])
+
+
+def test_region_traces_only_pulses_reaching_it():
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-100, -100, 100, 100])
+    ov = {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0, "range_min_m": 0.0}
+    sv = _survey(ov, _line(-5, 5, 60.0), speed=5.0)
+    full = simulate(sc, sv, workers=1)
+    part = simulate(sc, sv, workers=1, region=(0.0, -100, 100, 100))
+    assert len(part.pulses["slot"]) == len(full.pulses["slot"])  # every pulse is still emitted
+    x = part.points["xyz"][:, 0]
+    assert len(x) < 0.6 * len(full.points["xyz"]) and x.min() > -0.1  # beams that miss x ≥ 0: not traced
+    keep = full.points["xyz"][:, 0] > 0.1
+    assert np.array_equal(np.sort(full.points["pulse"][keep]), np.sort(part.points["pulse"][part.points["xyz"][:, 0] > 0.1]))

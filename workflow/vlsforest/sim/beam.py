@@ -168,3 +168,37 @@ def _fan(d, e1, tan_off, out):
             out[p, k, 0] = x / n
             out[p, k, 1] = y / n
             out[p, k, 2] = z / n
+
+
+def subray_rays32(origin, direction, scan_dir, pattern: SubrayPattern, shift):
+    """All sub-rays of the pulses as float32 origins (minus ``shift``) and directions, (m·n, 3)."""
+    m, n = len(direction), pattern.n
+    o32 = np.empty((m * n, 3), np.float32)
+    d32 = np.empty((m * n, 3), np.float32)
+    _fan32(np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
+           np.ascontiguousarray(scan_dir, np.float64), np.ascontiguousarray(np.tan(pattern.offsets)),
+           np.asarray(shift, np.float64), o32, d32)
+    return o32, d32
+
+
+@numba.njit(cache=True)
+def _fan32(o, d, e1, tan_off, shift, out_o, out_d):
+    n = tan_off.shape[0]
+    for p in range(d.shape[0]):
+        ox, oy, oz = o[p, 0] - shift[0], o[p, 1] - shift[1], o[p, 2] - shift[2]
+        dx, dy, dz = d[p, 0], d[p, 1], d[p, 2]
+        ax, ay, az = e1[p, 0], e1[p, 1], e1[p, 2]
+        bx, by, bz = dy * az - dz * ay, dz * ax - dx * az, dx * ay - dy * ax
+        for k in range(n):
+            u, v = tan_off[k, 0], tan_off[k, 1]
+            x = dx + u * ax + v * bx
+            y = dy + u * ay + v * by
+            z = dz + u * az + v * bz
+            nn = np.sqrt(x * x + y * y + z * z)
+            r = p * n + k
+            out_o[r, 0] = ox
+            out_o[r, 1] = oy
+            out_o[r, 2] = oz
+            out_d[r, 0] = x / nn
+            out_d[r, 1] = y / nn
+            out_d[r, 2] = z / nn

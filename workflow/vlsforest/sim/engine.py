@@ -38,8 +38,8 @@ import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError, VlsforestError
-from vlsforest.sim.beam import gaussian_weight, subray_directions, subray_pattern
-from vlsforest.sim.waveform import atmospheric_alpha, detect_returns, subray_energy
+from vlsforest.sim.beam import subray_directions, subray_pattern, subray_rays32
+from vlsforest.sim.waveform import atmospheric_alpha, detect_returns, hit_energy
 
 _MODES = {
     "physical": dict(peak_rule="physical", ring_scale="helios", two_way_time=False, dedupe_ranges=False,
@@ -114,7 +114,7 @@ class SimulationResult:
 class _Job:
     """Everything a worker needs, shared with forked workers through a module global."""
 
-    def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True):
+    def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True, region=None):
         self.keep_pulses = keep_pulses or keep_hits
         self.scene = scene
         self.survey = survey
@@ -137,6 +137,9 @@ class _Job:
         self.max_offset = float(np.abs(self.pattern.offsets).max()) * np.sqrt(2.0)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
+            if region is not None:
+                self.box_lo[:2] = np.maximum(self.box_lo[:2], region[:2])
+                self.box_hi[:2] = np.minimum(self.box_hi[:2], region[2:])
 
 
 _JOB: _Job | None = None
@@ -167,23 +170,19 @@ def _trace_and_detect(job: _Job, batch, rng):
     live = np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi,
                                           job.max_offset))
     nl = len(live)
-    dirs = subray_directions(batch.direction[live], batch.scan_dir[live], pat).reshape(-1, 3)
-    origins = np.repeat(batch.origin[live], ns, axis=0)
-    if job.labels:
-        t, part, cos_inc, label = job.scene.trace(origins, dirs, with_labels=True)
+    if getattr(job.scene, "uses_embree", False):  # float32 rays straight into Embree's frame
+        o32, d32 = subray_rays32(batch.origin[live], batch.direction[live], batch.scan_dir[live], pat,
+                                 job.scene.shift)
+        traced = job.scene.trace_local(o32, d32, with_labels=job.labels)
     else:
-        t, part, cos_inc = job.scene.trace(origins, dirs)
-    hit = np.isfinite(t) & (t >= job.survey.scanner.range_min_m)
-    idx = np.flatnonzero(hit)  # pulse-major order: live pulse = idx // ns
-    hpulse = live[idx // ns]
-    hsub = (idx % ns).astype(np.int16)
-    hrange = t[idx]
-    hpart = part[idx]
-    hcos = cos_inc[idx]
-    ptr = np.zeros(m + 1, dtype=np.int64)
-    np.cumsum(np.bincount(hpulse, minlength=m), out=ptr[1:])
-    hits = dict(pulse=hpulse.astype(np.int64), subray=hsub, range=hrange, cos_inc=hcos.astype(np.float32),
-                part=hpart.astype(np.int32))
+        dirs = subray_directions(batch.direction[live], batch.scan_dir[live], pat).reshape(-1, 3)
+        origins = np.repeat(batch.origin[live], ns, axis=0)
+        traced = job.scene.trace(origins, dirs, with_labels=job.labels)
+    t, part, cos_inc = traced[:3]
+    label = traced[3] if job.labels else None
+    idx, hpulse, ptr = _collect_hits(t, float(job.survey.scanner.range_min_m), ns, live.astype(np.int64), m)
+    hits = dict(pulse=hpulse, subray=(idx % ns).astype(np.int16), range=t[idx],
+                cos_inc=cos_inc[idx].astype(np.float32), part=part[idx])
     if job.labels:
         hits["label"] = label[idx]
     points, n_ret = _detect(job, batch, ptr, hits, rng)
@@ -194,6 +193,29 @@ def _trace_and_detect(job: _Job, batch, rng):
     else:
         pulses = dict(slot=batch.slot, n_returns=n_ret)
     return points, pulses, (hits if job.keep_hits else None), nl * ns
+
+
+@numba.njit(cache=True)
+def _collect_hits(t, range_min, ns, live, m):
+    """Indices of the valid sub-ray hits (pulse-major), their pulse rows and CSR offsets."""
+    n = 0
+    for i in range(t.shape[0]):
+        if t[i] < np.inf and t[i] >= range_min:
+            n += 1
+    idx = np.empty(n, np.int64)
+    pulse = np.empty(n, np.int64)
+    ptr = np.zeros(m + 1, np.int64)
+    k = 0
+    for i in range(t.shape[0]):
+        if t[i] < np.inf and t[i] >= range_min:
+            idx[k] = i
+            p = live[i // ns]
+            pulse[k] = p
+            ptr[p + 1] += 1
+            k += 1
+    for p in range(m):
+        ptr[p + 1] += ptr[p]
+    return idx, pulse, ptr
 
 
 def _beam_meets_box(origin, direction, lo, hi, max_offset):
@@ -241,11 +263,10 @@ def _detect(job: _Job, batch, ptr, hits, rng):
     sc = job.survey.scanner
     pat = job.pattern
     hpart = hits["part"]
-    w = gaussian_weight(pat.frac[hits["subray"]], hits["range"], sc.range_min_m, sc.beam_quality_factor)
-    energy = subray_energy(hits["range"], w, hits["cos_inc"], job.refl_pct[hpart], pat.n,
-                           average_power_w=sc.average_power_w, receiver_diameter_m=sc.receiver_diameter_m,
-                           optical_efficiency=sc.optical_efficiency, specularity=job.spec[hpart],
-                           shininess=job.shin[hpart], atm_alpha=job.atm_alpha)
+    energy = hit_energy(hits["range"], hits["subray"], hits["cos_inc"], hpart, pat.frac, job.refl_pct, job.spec,
+                        job.shin, pat.n, average_power_w=sc.average_power_w,
+                        receiver_diameter_m=sc.receiver_diameter_m, optical_efficiency=sc.optical_efficiency,
+                        range0=sc.range_min_m, m2=sc.beam_quality_factor, atm_alpha=job.atm_alpha)
     o = job.opts
     det = detect_returns(ptr, hits["range"], energy, pulse_length_ns=sc.pulse_length_ns,
                          bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns, min_energy=sc.min_energy,
@@ -342,7 +363,8 @@ def _concat(dicts):
 
 
 def simulate(scene, survey, seed: int | None = None, workers: int | None = None, keep_hits: bool = False,
-             block_slots: int = 20000, progress: bool = False, keep_pulses: bool = True) -> SimulationResult:
+             block_slots: int = 20000, progress: bool = False, keep_pulses: bool = True,
+             region=None) -> SimulationResult:
     """Run a survey over a scene.
 
     Parameters
@@ -361,6 +383,9 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
         inter-process traffic).
     block_slots : int
         Pulse slots per block (fixes the random streams; keep it constant to compare runs).
+    region : (xmin, ymin, xmax, ymax), optional
+        Trace only pulses whose beam reaches this horizontal region (the others are emitted
+        and kept as zero-return pulses); geometry outside it still occludes and reflects.
     progress : bool
         Print progress to stderr.
 
@@ -371,7 +396,11 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     global _JOB
     t0 = time.perf_counter()
     seed = survey.seed if seed is None else seed
-    job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses)
+    if region is not None:
+        region = np.asarray(region, dtype=np.float64)
+        if region.shape != (4,) or not (region[0] < region[2] and region[1] < region[3]):
+            raise ConfigError(f"region must be (xmin, ymin, xmax, ymax) with min < max, got {region!r}")
+    job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses, region)
     n_blocks = -(-survey.n_slots // job.block_slots)
     if hasattr(scene, "prepare"):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking

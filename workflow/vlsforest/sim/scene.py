@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 import yaml
 
@@ -310,7 +311,7 @@ class Scene:
         copy-on-write instead of each building its own.
         """
         self.grids
-        if self._embree is None and (self._meshes or any(self._in_embree(v) for v in self._voxelsets)):
+        if self._embree is None and self.uses_embree:
             self._build_embree()
             # Embree commits the BVH lazily: force it with one ray
             self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
@@ -338,33 +339,16 @@ class Scene:
         """
         o = np.ascontiguousarray(origins, dtype=np.float64)
         d = np.ascontiguousarray(dirs, dtype=np.float64)
+        if self.uses_embree:
+            self.prepare()
+            return self.trace_local((o - self._shift).astype(np.float32), d.astype(np.float32), with_labels,
+                                    world=(o, d))
         n = len(o)
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int32)
         cos_inc = np.zeros(n)
         label = np.zeros(n, dtype=np.uint8) if with_labels else None
-        if self._meshes or any(self._in_embree(v) for v in self._voxelsets):
-            if self._embree is None:
-                self._build_embree()
-            res = self._embree.run((o - self._shift).astype(np.float32), d.astype(np.float32), output=1)
-            gid = res["geomID"]
-            hit = gid >= 0
-            if hit.any():
-                ng = res["Ng"][hit].astype(np.float64)
-                tt = res["tfar"][hit].astype(np.float64)
-                t[hit] = tt
-                part[hit] = self._embree_parts[gid[hit]]
-                if with_labels:
-                    hidx = np.flatnonzero(hit)
-                    g = gid[hit]
-                    prim = res["primID"][hit]
-                    for k, lab in enumerate(self._embree_labels):
-                        if lab is not None:
-                            sel = g == k
-                            label[hidx[sel]] = lab[prim[sel]]
-                nn = np.linalg.norm(ng, axis=1)
-                cos_inc[hit] = np.abs(np.einsum("ij,ij->i", ng, d[hit])) / np.where(nn > 0, nn, 1.0)
-        for p in (self._planes if self._embree is None else ()):  # analytic, float64 (no meshes)
+        for p in self._planes:  # analytic, float64 (scenes without meshes)
             dz = d[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 tp = (p.z - o[:, 2]) / dz
@@ -379,19 +363,67 @@ class Scene:
                 cos_inc[idx] = np.abs(dz[idx])
                 if with_labels:
                     label[idx] = 0
+        self._trace_grids(o, d, t, part, cos_inc, label)
+        if with_labels:
+            return t, part, cos_inc, label
+        return t, part, cos_inc
+
+    @property
+    def uses_embree(self) -> bool:
+        """Whether meshes (and planes, and small voxel sets) are traced with Embree."""
+        return bool(self._meshes) or any(self._in_embree(v) for v in self._voxelsets)
+
+    @property
+    def shift(self) -> np.ndarray:
+        """World position of the origin of the float32 coordinates Embree works in."""
+        self.prepare()
+        return self._shift.copy()
+
+    def trace_local(self, o32, d32, with_labels: bool = False, world=None):
+        """:meth:`trace` for float32 rays already in the Embree frame (world − :attr:`shift`).
+
+        Saves the conversions when the caller builds its rays in float32 (the simulator does).
+        ``world`` optionally passes the same rays in float64 world coordinates for the voxel
+        grids (otherwise rebuilt from the float32 ones).
+        """
+        self.prepare()
+        res = self._embree.run(o32, d32, output=1)
+        gid = res["geomID"]
+        hit = gid >= 0
+        n = len(gid)
+        t = np.where(hit, res["tfar"], np.inf).astype(np.float64)
+        part = np.full(n, -1, dtype=np.int32)
+        part[hit] = self._embree_parts[gid[hit]]
+        cos_inc = np.zeros(n)
+        _abs_cos(res["Ng"], d32, gid, cos_inc)
+        label = np.zeros(n, dtype=np.uint8) if with_labels else None
+        if with_labels and hit.any():
+            hidx = np.flatnonzero(hit)
+            g = gid[hit]
+            prim = res["primID"][hit]
+            for k, lab in enumerate(self._embree_labels):
+                if lab is not None:
+                    sel = g == k
+                    label[hidx[sel]] = lab[prim[sel]]
+        if self.grids:
+            o, d = world if world is not None else (o32.astype(np.float64) + self._shift, d32.astype(np.float64))
+            self._trace_grids(o, d, t, part, cos_inc, label)
+        if with_labels:
+            return t, part, cos_inc, label
+        return t, part, cos_inc
+
+    def _trace_grids(self, o, d, t, part, cos_inc, label):
+        """Update nearest hits (in place) with the voxel grids."""
         for g in self.grids:
             tg, pg, face, _ = g.trace(o, d, t.copy())
             better = (pg >= 0) & (tg < t)
             if better.any():
                 t[better] = tg[better]
                 part[better] = pg[better]
-                if with_labels:
+                if label is not None:
                     label[better] = 0
                 axis = np.abs(face[better].astype(np.int64)) - 1
                 cos_inc[better] = np.abs(d[better, axis])
-        if with_labels:
-            return t, part, cos_inc, label
-        return t, part, cos_inc
 
     def __getstate__(self):  # the Embree scene cannot be pickled; rebuilt lazily after unpickling
         state = self.__dict__.copy()
@@ -402,6 +434,16 @@ class Scene:
 
 
 # ---------------------------------------------------------------------- helpers
+@numba.njit(cache=True)
+def _abs_cos(ng, d, gid, out):
+    for i in range(gid.shape[0]):
+        if gid[i] >= 0:
+            nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]
+            nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn > 0:
+                out[i] = abs(nx * d[i, 0] + ny * d[i, 1] + nz * d[i, 2]) / nn
+
+
 def _load_yaml(path: Path, what: str):
     if not path.is_file():
         raise ConfigError(f"{path}: no such {what} file")

@@ -85,6 +85,43 @@ def subray_energy(ranges, weights, cos_inc, reflectance_pct, n_subrays, *, avera
     return out.reshape(shape)
 
 
+def hit_energy(ranges, subray, cos_inc, part, frac, refl_pct, spec, shin, n_subrays, *, average_power_w,
+               receiver_diameter_m, optical_efficiency, range0=0.0, m2=1.0, atm_alpha=0.0) -> np.ndarray:
+    """:func:`subray_energy` of sub-ray hits given by sub-ray index and scene part (one pass).
+
+    The Gaussian weight of sub-ray ``k`` is ``exp(-2 (frac[k]·M²)² R²/(R² + R0²))``; the
+    reflectance (%), Phong specularity and shininess are looked up per part.
+    """
+    scale = average_power_w * receiver_diameter_m ** 2 * optical_efficiency * np.pi / (4.0 * n_subrays) * 1e9
+    out = np.empty(len(ranges))
+    _hit_energy_kernel(np.ascontiguousarray(ranges, np.float64), np.ascontiguousarray(subray, np.int64),
+                       np.ascontiguousarray(cos_inc, np.float64), np.ascontiguousarray(part, np.int64),
+                       np.ascontiguousarray(frac, np.float64), np.ascontiguousarray(refl_pct, np.float64),
+                       np.ascontiguousarray(spec, np.float64), np.ascontiguousarray(shin, np.float64),
+                       float(scale), float(range0), float(m2), float(atm_alpha), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _hit_energy_kernel(r, sub, cos_inc, part, frac, refl, spec, shin, scale, r0, m2, alpha, out):
+    half_pi = np.pi / 2
+    for i in range(r.shape[0]):
+        rr = max(r[i], 1e-6)
+        f = frac[sub[i]] * m2
+        w = np.exp(-2.0 * f * f * rr * rr / (rr * rr + r0 * r0))
+        c = min(max(cos_inc[i], 0.0), 1.0)
+        q = part[i]
+        brdf = c
+        if spec[q] != 0.0:
+            a = np.arccos(c)
+            a2 = a if a <= half_pi else a - half_pi
+            brdf = (1.0 - spec[q]) * c + spec[q] * abs(np.cos(a2)) ** shin[q]
+        e = scale * w * refl[q] * brdf * c / (rr * rr)
+        if alpha != 0.0:
+            e *= np.exp(-2.0 * rr * alpha)
+        out[i] = e
+
+
 @numba.njit(cache=True)
 def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
     half_pi = np.pi / 2
@@ -190,10 +227,10 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
 
 
 @numba.njit(cache=True)
-def _stable_order(x):
-    """Stable ascending order of a short array (insertion sort)."""
+def _stable_order(x, buf):
+    """Stable ascending order of a short array (insertion sort into ``buf``)."""
     n = x.shape[0]
-    order = np.empty(n, np.int64)
+    order = buf[:n]
     for i in range(n):
         j = i
         v = x[i]
@@ -224,6 +261,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
             if span > maxspan:
                 maxspan = span
     wave = np.empty(int(maxspan / bin_m) + shape.shape[0] + 2, np.float64)
+    order_buf = np.empty(1024, np.int64)
     o_range = np.empty(max_per_pulse, np.float64)
     o_amp = np.empty(max_per_pulse, np.float64)
     o_sub = np.empty(max_per_pulse, np.int64)
@@ -233,7 +271,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
         if b == a:
             continue
         rr = ranges[a:b]
-        order = _stable_order(rr)
+        order = _stable_order(rr, order_buf) if b - a <= 1024 else np.argsort(rr, kind="mergesort")
         f = _detect_one(rr, energy[a:b], order, shape, peak_index, bin_m, win, eps, max_returns,
                         helios_rule, dedupe, wave, o_range, o_amp, o_sub)
         nret[p] = f

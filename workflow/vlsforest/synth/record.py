@@ -371,7 +371,9 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         gps = 0.0
         for r, sv in enumerate(airborne_survey(plot, sensor, campaign[sensor], physics.get(sensor, {}), seed)):
             survey = survey_from_dict(sv)
-            res = simulate(scene, survey, workers=workers, keep_pulses=False)
+            # pulses are traced where they reach the plot (+ a small pad): the recording covers
+            # the plot, the trees around it still occlude and reflect
+            res = simulate(scene, survey, workers=workers, keep_pulses=False, region=_recording_region(plot))
             res.points["gps_time"] = res.points["gps_time"] + gps
             res.points["point_source_id"] = (res.points["point_source_id"].astype(np.int64) + 100 * r).astype(np.uint16)
             tr = survey.trajectory()
@@ -388,6 +390,11 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         _log(f"{plot.name} {sensor.upper()}: {len(merged.points['xyz'])} points "
              f"({timings[f'{sensor}_s']:.1f} s)", quiet)
     return timings
+
+
+def _recording_region(plot, pad: float = 3.0):
+    xmin, ymin, xmax, ymax = plot.extent
+    return (xmin - pad, ymin - pad, xmax + pad, ymax + pad)
 
 
 def _merge_results(results):
