@@ -136,3 +136,37 @@ def test_hit_energy_matches_subray_energy():
     w = gaussian_weight(pat.frac[sub], r, 100.0, 1.2)
     b = subray_energy(r, w, cos, refl[part], pat.n, specularity=spec[part], shininess=shin[part], atm_alpha=1e-4, **kw)
     assert np.allclose(a, b, rtol=1e-12)
+
+
+def _reference_physical(ranges, energy, win, bin_m=C_M_PER_NS * 0.25):
+    """Plain-Python statement of the physical peak rule (for comparison)."""
+    shape = pulse_shape(4.0, 0.25)
+    d0 = min(ranges)
+    nb = int((max(ranges) - d0) / bin_m) + len(shape)
+    wave = [0.0] * nb
+    for d, e in sorted(zip(ranges, energy), key=lambda x: x[0]):
+        b = int((d - d0) / bin_m)
+        for i, p in enumerate(shape):
+            if b + i < nb:
+                wave[b + i] += p * e
+    out = []
+    for i, v in enumerate(wave):
+        if v <= 0:
+            continue
+        left = wave[max(0, i - win):i]
+        right = wave[i + 1:min(nb, i + win + 1)]
+        if all(x < v for x in left) and all(x <= v for x in right):
+            out.append(d0 + (i - 5) * bin_m)
+    return out
+
+
+def test_peak_rule_matches_plain_statement():
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.integers(1, 12))
+        r = 300 + np.cumsum(rng.exponential(0.4, n))
+        e = rng.uniform(1, 100, n)
+        win_ns = float(rng.choice([0.5, 1.0, 1.5, 1.75]))
+        got = detect_returns(np.array([0, n]), r, e, window_size_ns=win_ns)["range"]
+        want = _reference_physical(list(r), list(e), int(win_ns / 0.25))
+        assert np.allclose(got, want), (r, e, win_ns)

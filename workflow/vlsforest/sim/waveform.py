@@ -189,6 +189,9 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
                         ok = False
                         break
         else:
+            # the nearest neighbours reject most bins (rising or falling edges): test them first
+            if (i > 0 and win > 0 and wave[i - 1] >= v) or (i + 1 < nbins and win > 0 and wave[i + 1] > v):
+                continue
             lo = i - win
             if lo < 0:
                 lo = 0

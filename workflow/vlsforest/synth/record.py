@@ -360,7 +360,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
             gps += survey.n_slots / s.prf_hz + 1.0
             _log(f"{plot.name} TLS scan {k}: {survey.n_slots} shots, {len(res.points['xyz'])} points "
                  f"({res.timings['total']:.1f} s)", quiet)
-        pd.DataFrame(rows).to_csv(pdir / "tls" / "scans.csv", index=False, float_format="%.9g")
+        pd.DataFrame(rows).to_csv(pdir / "tls" / "scans.csv", index=False, float_format="%.12g")
         timings["tls_s"] = time.perf_counter() - t0
     for sensor in ("als", "uls"):
         if sensor not in sensors:
