@@ -122,3 +122,26 @@ def test_cli_bad_scene_exit_2(tmp_path, capsys):
     assert rc == 2
     assert "line" in err and "Traceback" not in err
     assert not (tmp_path / "o.laz").exists()
+
+
+def test_restyled_scene_shares_geometry_changes_energy():
+    from vlsforest.sim import Material, simulate
+    from vlsforest.sim.survey import survey_from_dict
+
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50], Material(0.2))
+    v = np.array([[-5, -5, 3], [5, -5, 3], [5, 5, 3], [-5, 5, 3]], float)
+    sc.add_mesh(2, v, [[0, 1, 2], [0, 2, 3]], Material(0.4))
+    other = sc.restyled({2: Material(0.1)})
+    assert other._embree is sc._embree  # the BVH is shared
+    assert sc.parts[1].material.reflectance == 0.4  # the original is unchanged
+    sv = survey_from_dict({"scanner": "riegl_vq780i", "overrides": {"prf_hz": 5000, "scan_freq_hz": 10,
+                          "scan_angle_deg": 10.0, "max_scan_angle_deg": 10.0, "range_min_m": 0.0},
+                           "platform": {"speed_mps": 2, "legs": [{"start": [0, -1, 50], "end": [0, 1, 50]}]}})
+    a, b = simulate(sc, sv, workers=1), simulate(other, sv, workers=1)
+    assert np.array_equal(a.points["xyz"], b.points["xyz"])
+    on = a.points["object_id"] == 2
+    assert on.any()
+    assert np.allclose(b.points["amplitude"][on] / a.points["amplitude"][on], 0.25, rtol=1e-5)
+    with pytest.raises(ConfigError):
+        sc.restyled({99: Material(0.1)})

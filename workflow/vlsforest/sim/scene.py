@@ -304,6 +304,24 @@ class Scene:
         """Whether any mesh part carries per-face labels."""
         return any(m.labels is not None for m in self._meshes)
 
+    def restyled(self, materials: dict) -> "Scene":
+        """A copy with other materials, sharing geometry, voxel grids and the Embree BVH.
+
+        Parameters
+        ----------
+        materials : dict
+            Object id → :class:`Material` for the parts to change (others keep theirs).
+        """
+        unknown = set(materials) - {p.object_id for p in self.parts}
+        if unknown:
+            raise ConfigError(f"restyled: no part with object id(s) {sorted(unknown)}")
+        self.prepare()
+        other = Scene.__new__(Scene)  # not copy.copy: __getstate__ would drop the BVH
+        other.__dict__.update(self.__dict__)
+        other.parts = [ScenePart(p.object_id, p.kind, materials.get(p.object_id, p.material), p.classification,
+                                 p.name) for p in self.parts]
+        return other
+
     def prepare(self) -> None:
         """Build the voxel grids and the Embree BVH now (else lazily at the first trace).
 

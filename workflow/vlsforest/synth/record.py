@@ -209,11 +209,7 @@ def physics_overrides(block: dict, base_divergence) -> tuple[dict, dict | None]:
 # ---------------------------------------------------------------------------------- scenes
 def plot_scene(plot, geometries: dict, sensor: str, physics: dict | None = None) -> Scene:
     """The truth scene of a plot for one sensor: rough ground mesh + trees (wood, foliage)."""
-    physics = physics or {}
-    refl = dict(REFLECTANCE[sensor])
-    refl.update(physics.get("reflectance", {}))
-    ks = physics.get("incidence_reflectance", {})
-    spec, shin = float(ks.get("specularity", 0.0)), float(ks.get("shininess", 10.0))
+    refl, spec, shin = _sensor_materials(sensor, physics)
     sc = Scene()
     xmin, ymin, xmax, ymax = _scene_extent(plot)
     g = plot.ground.mesh((xmin, ymin, xmax, ymax), spacing=1.0)
@@ -229,6 +225,24 @@ def plot_scene(plot, geometries: dict, sensor: str, physics: dict | None = None)
                 sc.add_mesh(10 * tid + grp, geo.vertices[used], inv.reshape(-1, 3), Material(r, spec, shin),
                             classification=cls, name=f"tree {tid}", face_labels=geo.organ[sel].astype(np.uint8))
     return sc
+
+
+def _sensor_materials(sensor: str, physics: dict | None):
+    physics = physics or {}
+    refl = dict(REFLECTANCE[sensor])
+    refl.update(physics.get("reflectance", {}))
+    ks = physics.get("incidence_reflectance", {})
+    return refl, float(ks.get("specularity", 0.0)), float(ks.get("shininess", 10.0))
+
+
+def restyle_for(scene: Scene, sensor: str, physics: dict | None) -> Scene:
+    """The same plot scene with the materials of another sensor (geometry and BVH shared)."""
+    refl, spec, shin = _sensor_materials(sensor, physics)
+    mats = {}
+    for p in scene.parts:
+        kind = "ground" if p.object_id == GROUND_ID else ("wood" if p.object_id % 10 == WOOD else "foliage")
+        mats[p.object_id] = Material(refl[kind], spec, shin)
+    return scene.restyled(mats)
 
 
 def _scene_extent(plot):
@@ -335,9 +349,10 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
     pdir = out / "plots" / plot.name
     tdir = out / "truth" / plot.name
     timings = {}
+    base = plot_scene(plot, geometries, "tls", physics.get("tls", {}))  # one BVH for all sensors
     if "tls" in sensors:
         t0 = time.perf_counter()
-        scene = plot_scene(plot, geometries, "tls", physics.get("tls", {}))
+        scene = base
         rows = []
         gps = 0.0
         for k, pos in enumerate(tls_positions(plot, tls_cfg), start=1):
@@ -366,8 +381,8 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         if sensor not in sensors:
             continue
         t0 = time.perf_counter()
-        scene = plot_scene(plot, geometries, sensor, physics.get(sensor, {}))
-        clouds, trajs, labels = [], [], []
+        scene = restyle_for(base, sensor, physics.get(sensor, {}))
+        clouds, trajs = [], []
         gps = 0.0
         for r, sv in enumerate(airborne_survey(plot, sensor, campaign[sensor], physics.get(sensor, {}), seed)):
             survey = survey_from_dict(sv)
