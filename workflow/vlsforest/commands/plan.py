@@ -44,14 +44,7 @@ def run(args) -> int:
         scenario = yaml.safe_load(path.read_text())
     if not isinstance(scenario, dict):
         raise ConfigError("the scenario must be a mapping")
-    scene = Scene.from_yaml(args.scene)
-    planes = [p for p in scene._planes]
-    if planes:
-        ext = planes[0].extent
-        ground = planes[0].z
-    else:
-        lo, hi = scene.bounds()
-        ext, ground = (lo[0], lo[1], hi[0], hi[1]), lo[2]
+    ext, ground = Scene.from_yaml(args.scene).footprint()
     survey = plan_survey(scenario, ext, ground)
     if args.seed is not None:
         survey["seed"] = int(args.seed)

@@ -247,6 +247,18 @@ class Scene:
             hi = np.maximum(hi, v.origin + (v.ijk.max(axis=0) + 1) * v.size)
         return lo, hi
 
+    def footprint(self) -> tuple[tuple, float]:
+        """Horizontal extent and ground elevation to plan surveys over.
+
+        The first ground plane's extent and height; without a plane, the scene's bounds and
+        their lowest z.
+        """
+        if self._planes:
+            p = self._planes[0]
+            return p.extent, p.z
+        lo, hi = self.bounds()
+        return (lo[0], lo[1], hi[0], hi[1]), lo[2]
+
     @property
     def grids(self) -> list[VoxelGrid]:
         """The voxel grids, one per lattice (voxel parts sharing a lattice are merged)."""
