@@ -77,8 +77,7 @@ def subray_energy(ranges, weights, cos_inc, reflectance_pct, n_subrays, *, avera
     def flat(a):
         return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), shape)).reshape(n)
 
-    # σ·Pr combined: Pe Dr² η T² ρ brdf cos a · π / (4 N R²) · 1e9 (δ cancels)
-    scale = average_power_w * receiver_diameter_m ** 2 * optical_efficiency * np.pi / (4.0 * n_subrays) * 1e9
+    scale = _energy_scale(average_power_w, receiver_diameter_m, optical_efficiency, n_subrays)
     out = np.empty(n)
     _energy_kernel(r.reshape(n), flat(weights), flat(cos_inc), flat(reflectance_pct), flat(specularity),
                    flat(shininess), float(scale), float(atm_alpha), out)
@@ -92,7 +91,7 @@ def hit_energy(ranges, subray, cos_inc, part, frac, refl_pct, spec, shin, n_subr
     The Gaussian weight of sub-ray ``k`` is ``exp(-2 (frac[k]·M²)² R²/(R² + R0²))``; the
     reflectance (%), Phong specularity and shininess are looked up per part.
     """
-    scale = average_power_w * receiver_diameter_m ** 2 * optical_efficiency * np.pi / (4.0 * n_subrays) * 1e9
+    scale = _energy_scale(average_power_w, receiver_diameter_m, optical_efficiency, n_subrays)
     out = np.empty(len(ranges))
     _hit_energy_kernel(np.ascontiguousarray(ranges, np.float64), np.ascontiguousarray(subray, np.int64),
                        np.ascontiguousarray(cos_inc, np.float64), np.ascontiguousarray(part, np.int64),
@@ -102,41 +101,42 @@ def hit_energy(ranges, subray, cos_inc, part, frac, refl_pct, spec, shin, n_subr
     return out
 
 
+def _energy_scale(average_power_w, receiver_diameter_m, optical_efficiency, n_subrays) -> float:
+    """Constant factor of the energy: σ·Pr combined is Pe Dr² η T² ρ brdf cos a · π / (4 N R²) · 1e9
+    (the divergence cancels)."""
+    return float(average_power_w * receiver_diameter_m ** 2 * optical_efficiency * np.pi / (4.0 * n_subrays) * 1e9)
+
+
+@numba.njit(cache=True, inline="always")
+def _one_energy(r, w, cos_inc, refl, spec, shin, scale, alpha):
+    """Energy of one sub-ray hit: range, Gaussian weight, |cos a|, reflectance %, Phong ks and n."""
+    c = min(max(cos_inc, 0.0), 1.0)
+    brdf = c
+    if spec != 0.0:
+        a = np.arccos(c)
+        a2 = a if a <= np.pi / 2 else a - np.pi / 2
+        brdf = (1.0 - spec) * c + spec * abs(np.cos(a2)) ** shin
+    rr = max(r, 1e-6)
+    e = scale * w * refl * brdf * c / (rr * rr)
+    if alpha != 0.0:
+        e *= np.exp(-2.0 * rr * alpha)
+    return e
+
+
 @numba.njit(cache=True)
 def _hit_energy_kernel(r, sub, cos_inc, part, frac, refl, spec, shin, scale, r0, m2, alpha, out):
-    half_pi = np.pi / 2
     for i in range(r.shape[0]):
         rr = max(r[i], 1e-6)
         f = frac[sub[i]] * m2
         w = np.exp(-2.0 * f * f * rr * rr / (rr * rr + r0 * r0))
-        c = min(max(cos_inc[i], 0.0), 1.0)
         q = part[i]
-        brdf = c
-        if spec[q] != 0.0:
-            a = np.arccos(c)
-            a2 = a if a <= half_pi else a - half_pi
-            brdf = (1.0 - spec[q]) * c + spec[q] * abs(np.cos(a2)) ** shin[q]
-        e = scale * w * refl[q] * brdf * c / (rr * rr)
-        if alpha != 0.0:
-            e *= np.exp(-2.0 * rr * alpha)
-        out[i] = e
+        out[i] = _one_energy(r[i], w, cos_inc[i], refl[q], spec[q], shin[q], scale, alpha)
 
 
 @numba.njit(cache=True)
 def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
-    half_pi = np.pi / 2
     for i in range(r.shape[0]):
-        c = min(max(cos_inc[i], 0.0), 1.0)
-        brdf = c
-        if spec[i] != 0.0:
-            a = np.arccos(c)
-            a2 = a if a <= half_pi else a - half_pi
-            brdf = (1.0 - spec[i]) * c + spec[i] * abs(np.cos(a2)) ** shin[i]
-        rr = max(r[i], 1e-6)
-        e = scale * w[i] * refl[i] * brdf * c / (rr * rr)
-        if alpha != 0.0:
-            e *= np.exp(-2.0 * rr * alpha)
-        out[i] = e
+        out[i] = _one_energy(r[i], w[i], cos_inc[i], refl[i], spec[i], shin[i], scale, alpha)
 
 
 @numba.njit(cache=True)
