@@ -208,23 +208,26 @@ def physics_overrides(block: dict, base_divergence) -> tuple[dict, dict | None]:
 
 # ---------------------------------------------------------------------------------- scenes
 def plot_scene(plot, geometries: dict, sensor: str, physics: dict | None = None) -> Scene:
-    """The truth scene of a plot for one sensor: rough ground mesh + trees (wood, foliage)."""
-    refl, spec, shin = _sensor_materials(sensor, physics)
+    """The truth scene of a plot for one sensor: rough ground mesh + trees (wood, foliage).
+
+    Geometry first, then the sensor's materials by :func:`restyle_for` (the one place that maps
+    parts to materials), so scenes of other sensors can share the geometry and its BVH.
+    """
     sc = Scene()
     xmin, ymin, xmax, ymax = _scene_extent(plot)
     g = plot.ground.mesh((xmin, ymin, xmax, ymax), spacing=1.0)
-    sc.add_mesh(GROUND_ID, g.vertices, g.faces, Material(refl["ground"], spec, shin), classification=2,
-                name="ground", face_labels=np.full(len(g.faces), 255, dtype=np.uint8))
+    sc.add_mesh(GROUND_ID, g.vertices, g.faces, classification=2, name="ground",
+                face_labels=np.full(len(g.faces), 255, dtype=np.uint8))
     for tid in sorted(geometries):
         geo = geometries[tid]
         wood = geo.organ != 2
-        for grp, sel, r, cls in ((WOOD, wood, refl["wood"], 5), (FOLIAGE, ~wood, refl["foliage"], 5)):
+        for grp, sel in ((WOOD, wood), (FOLIAGE, ~wood)):
             if sel.any():
                 f = geo.faces[sel]
                 used, inv = np.unique(f, return_inverse=True)
-                sc.add_mesh(10 * tid + grp, geo.vertices[used], inv.reshape(-1, 3), Material(r, spec, shin),
-                            classification=cls, name=f"tree {tid}", face_labels=geo.organ[sel].astype(np.uint8))
-    return sc
+                sc.add_mesh(10 * tid + grp, geo.vertices[used], inv.reshape(-1, 3), classification=5,
+                            name=f"tree {tid}", face_labels=geo.organ[sel].astype(np.uint8))
+    return restyle_for(sc, sensor, physics)
 
 
 def _sensor_materials(sensor: str, physics: dict | None):
@@ -236,7 +239,7 @@ def _sensor_materials(sensor: str, physics: dict | None):
 
 
 def restyle_for(scene: Scene, sensor: str, physics: dict | None) -> Scene:
-    """The same plot scene with the materials of another sensor (geometry and BVH shared)."""
+    """The same plot scene with the materials of a sensor (geometry and BVH shared)."""
     refl, spec, shin = _sensor_materials(sensor, physics)
     mats = {}
     for p in scene.parts:
