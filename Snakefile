@@ -1,6 +1,8 @@
 # vlsforest — virtual laser scanning of voxelised forests (Weiser et al. 2021, reproduced).
 #
-# Results path convention: results/{plot}/{method}/{scenario}/…  (scenes: results/{plot}/{method}/scene/)
+# Results path convention: results/{plot}/{method}/{scenario}/…  (per plot: segment/, stems/, pad/,
+# targets.csv, site.json, crowns.npz, surveys/; per method: voxels.npz, scene/; references under
+# results/{plot}/reference/{scenario}/; summaries under results/summary/)
 # Logs under logs/, benchmark files under logs/benchmarks/. Jobs call `python -m vlsforest.cli`.
 # Reruns: every config value a rule uses is a param, and so is a hash of the library sources
 # (workflow/vlsforest): editing the library reruns the outputs (to keep results after a purely
@@ -27,10 +29,36 @@ if not workflow.overwrite_configfiles:
     configfile: DEFAULT_CONFIG
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
+include: "workflow/rules/segment.smk"
+include: "workflow/rules/stems.smk"
+include: "workflow/rules/extract.smk"
+include: "workflow/rules/pad.smk"
+include: "workflow/rules/voxels.smk"
 include: "workflow/rules/scene.smk"
 include: "workflow/rules/sim.smk"
+include: "workflow/rules/metrics.smk"
+include: "workflow/rules/stats.smk"
+
+
+# Voxel methods added as rule files (see README "Add a voxel method"): every rules/methods/*.smk
+for _method_rules in sorted(Path(workflow.basedir, "workflow", "rules", "methods").glob("*.smk")):
+
+    include: _method_rules
+
+
+# every configured method needs a kind that something builds: built in, or a rule voxels_<kind>
+for _name, _entry in config["methods"].items():
+    if _entry["kind"] not in BUILTIN_KINDS and "voxels_" + _entry["kind"] not in dir(rules):
+        raise WorkflowError(
+            f"Invalid configuration at 'methods.{_name}.kind': unknown kind {_entry['kind']!r} "
+            f"(built in: {', '.join(BUILTIN_KINDS)}; or add workflow/rules/methods/<kind>.smk "
+            f"with a rule voxels_<kind>)"
+        )
 
 
 rule all:

@@ -502,3 +502,24 @@ def test_mesh_binary_truncated_and_missing(tmp_path):
         write_mesh(tmp_path / "out.stl", TriangleMesh(CUBE_V, [[0, 1, 2]]))
     with pytest.raises(InputDataError, match="out of range"):
         TriangleMesh(CUBE_V, [[0, 1, 8]])
+
+
+def test_las_flag_fields_round_trip_as_standard_fields(tmp_path):
+    """Point-format-6 flag bits (synthetic … edge of flight line, scanner channel) read from one
+    file are written back into the flag byte, not duplicated as extra dimensions."""
+    import laspy
+
+    from vlsforest.io.las import PointCloud, read_las, write_las
+
+    n = 12
+    attrs = {"synthetic": np.arange(n) % 2, "key_point": (np.arange(n) % 3 == 1).astype(np.uint8),
+             "withheld": np.zeros(n, np.uint8), "overlap": (np.arange(n) > 6).astype(np.uint8),
+             "scanner_channel": np.arange(n) % 4, "scan_direction_flag": np.ones(n, np.uint8),
+             "edge_of_flight_line": (np.arange(n) % 5 == 0).astype(np.uint8)}
+    write_las(tmp_path / "a.las", PointCloud(np.random.default_rng(0).random((n, 3)), attrs))
+    back = read_las(tmp_path / "a.las")
+    for k, v in attrs.items():
+        assert np.array_equal(back.attrs[k], v), k
+    assert list(laspy.read(tmp_path / "a.las").point_format.extra_dimension_names) == []
+    write_las(tmp_path / "b.las", back)
+    assert list(laspy.read(tmp_path / "b.las").point_format.extra_dimension_names) == []

@@ -170,3 +170,45 @@ def test_peak_rule_matches_plain_statement():
         got = detect_returns(np.array([0, n]), r, e, window_size_ns=win_ns)["range"]
         want = _reference_physical(list(r), list(e), int(win_ns / 0.25))
         assert np.allclose(got, want), (r, e, win_ns)
+
+
+@pytest.mark.parametrize("rule,dedupe,max_returns", [("physical", False, 0), ("helios", True, 2)])
+def test_detect_traced_equals_collected_hits_then_detection(rule, dedupe, max_returns):
+    """The fused pass over the cast gives exactly hit_energy + detect_returns on the collected hits."""
+    from vlsforest.sim.waveform import (detect_returns, detect_traced, detection_constants, energy_constants,
+                                        hit_energy)
+
+    rng = np.random.default_rng(4)
+    ns, nl, m = 7, 300, 450
+    live = np.sort(rng.choice(m, nl, replace=False)).astype(np.int64)
+    base = rng.uniform(5.0, 60.0, nl)
+    t = np.repeat(base, ns) + rng.choice([0.0, 0.02, 0.6, 3.0], nl * ns) + rng.uniform(0, 0.01, nl * ns)
+    t[rng.random(nl * ns) < 0.3] = np.inf
+    t[rng.random(nl * ns) < 0.05] = 2.0  # nearer than range_min
+    t[::11] = t[1::11][: len(t[::11])]  # duplicate ranges
+    part = rng.integers(0, 3, nl * ns).astype(np.int32)
+    part[~np.isfinite(t)] = -1
+    cos_inc = rng.uniform(0.1, 1.0, nl * ns)
+    frac = np.r_[0.0, np.full(6, 0.5)]
+    refl, spec, shin = np.array([30.0, 50.0, 10.0, 0.0]), np.array([0.0, 0.3, 0.0, 0.0]), np.array([10.0, 5.0, 1.0, 1])
+    energy_kw = dict(average_power_w=4.0, receiver_diameter_m=0.15, optical_efficiency=0.9, range0=3.0, m2=1.0)
+    det_kw = dict(pulse_length_ns=4.0, bin_size_ns=0.25, window_size_ns=1.5, min_energy=0.0, max_returns=max_returns,
+                  peak_rule=rule, two_way_time=False, dedupe_ranges=dedupe)
+    got = detect_traced(t, part, cos_inc, live, ns, m, 3.0, frac, refl, spec, shin,
+                        energy_constants(n_subrays=ns, **energy_kw), detection_constants(**det_kw))
+    # reference: collect the hits, then the two-step detection
+    ok = np.isfinite(t) & (t >= 3.0)
+    idx = np.flatnonzero(ok)
+    pulse = live[idx // ns]
+    ptr = np.zeros(m + 1, np.int64)
+    np.cumsum(np.bincount(pulse, minlength=m), out=ptr[1:])
+    energy = hit_energy(t[idx], idx % ns, cos_inc[idx].astype(np.float32), part[idx], frac, refl, spec, shin, ns,
+                        **energy_kw)
+    ref = detect_returns(ptr, t[idx], energy, **det_kw)
+    assert len(ref["range"]) > nl // 2
+    for k, name in enumerate(("pulse", "range", "amplitude")):
+        np.testing.assert_array_equal(got[k], ref[name], err_msg=name)
+    np.testing.assert_array_equal(got[3], idx[ref["hit"]])
+    np.testing.assert_array_equal(got[4], ref["return_number"])
+    np.testing.assert_array_equal(got[5], ref["number_of_returns"])
+    np.testing.assert_array_equal(got[6], ref["n_returns"])

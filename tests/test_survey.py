@@ -249,6 +249,40 @@ def test_pulses_do_not_depend_on_chunking(kind, noisy):
     assert np.all(np.diff(whole.slot) > 0) and np.all(np.diff(whole.gps_time) > 0)
 
 
+@pytest.mark.parametrize("kind", sorted(DEFLECTOR_SURVEYS))
+@pytest.mark.parametrize("noisy", [False, True])
+def test_pulses_toward_equals_pulses_then_cone_test(kind, noisy):
+    """The compiled emitted-and-culled pulses are bit-identical to pulses() + the cone test."""
+    from vlsforest.sim.engine import _beam_meets_box
+
+    d = DEFLECTOR_SURVEYS[kind]()
+    if kind != "tls":
+        d["platform"]["legs"] = TWO_LEGS
+    if noisy:
+        d["trajectory_noise"] = {"position_sigma_m": 0.2, "attitude_sigma_deg": 0.05, "correlation_s": 0.7}
+    s = survey_from_dict(d)
+    boxes = [(np.array([-30.0, 5.0, -2.0]), np.array([10.0, 25.0, 20.0])),  # part of the swath / scene
+             (np.array([-1e4, -1e4, -1e4]), np.array([1e4, 1e4, 1e4])),  # everything
+             (np.array([500.0, 500.0, 0.0]), np.array([510.0, 510.0, 5.0])),  # far away
+             (np.array([0.0, 0.0, -np.inf]), np.array([1.0, 1.0, 1.0]))]  # not finite: nothing
+    tan_off = float(np.tan(0.0021))
+    edges = [0, 7, s.n_slots // 3, s.n_slots // 3, s.n_slots]
+    n_live = []
+    for lo, hi in boxes:
+        for a, b in zip(edges[:-1], edges[1:]):
+            slot, live, batch = s.pulses_toward(a, b, lo, hi, tan_off)
+            ref = s.pulses(a, b)
+            ref_live = np.flatnonzero(_beam_meets_box(ref.origin, ref.direction, lo, hi, 0.0021))
+            np.testing.assert_array_equal(slot, ref.slot)
+            np.testing.assert_array_equal(live, ref_live)
+            sub = ref.subset(ref_live)
+            for f in FIELDS:
+                x, y = getattr(batch, f), getattr(sub, f)
+                assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), f
+            n_live.append(len(live))
+    assert sum(n_live[4:8]) == len(s.pulses(0, s.n_slots)) and sum(n_live[12:]) == 0  # all; none
+
+
 def test_scan_dir_points_the_way_the_beam_sweeps():
     for kind in ("polygon", "rotating", "conic", "tls"):
         s = survey_from_dict(DEFLECTOR_SURVEYS[kind]())

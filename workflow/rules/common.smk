@@ -35,14 +35,18 @@ SCENARIOS = list(config["scenarios"])
 #: the library's source tree, versioned together with this workflow
 LIBRARY_DIR = Path(workflow.basedir) / "workflow" / "vlsforest"
 
-#: the parts ``vlsforest demo`` writes beside scene.yaml (declared outputs of rule scene)
-DEMO_PARTS = ("stem.obj", "crown.csv")
+#: species groups (leaf angle distribution, PADmax) used by PAD-scaled methods
+PAD_GROUPS = config["pad"]["groups"]
+
+#: methods whose voxels a built-in kind makes (others come from rule files in rules/methods/)
+BUILTIN_KINDS = ("fixed", "scaled")
 
 
 wildcard_constraints:
     plot="|".join(map(re.escape, PLOTS)),
     method="|".join(map(re.escape, METHODS)),
     scenario="|".join(map(re.escape, SCENARIOS)),
+    source="|".join(map(re.escape, METHODS + ["reference"])),
 
 
 # ---------------------------------------------------------------------------------------------
@@ -91,39 +95,148 @@ def library_hash(*parts):
     return h.hexdigest()[:16]
 
 
-#: the simulator stage's code: simulator, I/O, CLI, demo scene
-SIM_HASH = library_hash("sim", "io", "commands", "cli.py", "demo.py", "errors.py")
+_BASE = ("io", "cli.py", "errors.py")
+#: the simulator stage's code: simulator, I/O, CLI
+SIM_HASH = library_hash("sim", "commands/simulate.py", "commands/plan.py", *_BASE)
+#: per-stage code hashes (a rule reruns when the code it runs changes)
+SEGMENT_HASH = library_hash("segment.py", "segment", "commands/segment.py", *_BASE)
+STEMS_HASH = library_hash("stems.py", "commands/stems.py", *_BASE)
+PAD_HASH = library_hash("pad", "sim", "commands/pad.py", *_BASE)
+SCENE_HASH = library_hash("scene.py", "voxels.py", "extract.py", "commands/scene.py", "commands/voxels.py", "pad", *_BASE)
+EXTRACT_HASH = library_hash("extract.py", "scene.py", "commands/extract.py", *_BASE)
+METRICS_HASH = library_hash("metrics.py", "commands/metrics.py", "commands/collect.py", *_BASE)
+STATS_HASH = library_hash("stats.py", "report", "commands/stats.py", "commands/report.py", *_BASE)
 #: the synthesis stage's code: the virtual forest plus the simulator it records with
-SYNTH_HASH = library_hash("synth", "sim", "io", "commands", "cli.py", "errors.py")
+SYNTH_HASH = library_hash("synth", "sim", "commands/synth.py", *_BASE)
 
+
+
+# ---------------------------------------------------------------------------------------------
+# Plot inputs: the virtual forest (results/forest) or real data named in the config
+# ---------------------------------------------------------------------------------------------
+def is_virtual(plot):
+    return config["plots"][plot].get("kind", "virtual") == "virtual"
+
+
+def plot_files(wildcards):
+    """Input files of a plot: the forest folder (virtual) or the real data files."""
+    p = config["plots"][wildcards.plot]
+    if is_virtual(wildcards.plot):
+        return {"forest": "results/forest"}
+    files = {"tls": p["tls"], "scans": p["scans"], "plot_json": p["plot_json"]}
+    for sc in SCENARIOS:
+        rec = config["scenarios"][sc].get("recording", sc)
+        if rec in p:
+            files[f"rec_{rec}"] = p[rec]
+        if f"trajectory_{rec}" in p:
+            files[f"traj_{rec}"] = p[f"trajectory_{rec}"]
+    return files
+
+
+def _plot_path(plot, what, rec=None):
+    """Path of one input of a plot (what: tls_dir, scans, plot_json, recording, trajectory)."""
+    p = config["plots"][plot]
+    if is_virtual(plot):
+        base = f"results/forest/plots/{plot}"
+        return {
+            "tls_dir": f"{base}/tls",
+            "scans": f"{base}/tls/scans.csv",
+            "plot_json": f"{base}/plot.json",
+            "recording": f"{base}/{rec}.laz",
+            "trajectory": f"{base}/trajectory_{rec}.csv",
+        }[what]
+    if what == "tls_dir":
+        return str(Path(p["scans"]).parent)
+    if what == "recording":
+        return p[rec]
+    if what == "trajectory":
+        return p[f"trajectory_{rec}"]
+    return p[what]
+
+
+def tls_files(wildcards):
+    """The plot's TLS scans (virtual: all LAZ files of the scan folder, known after synth)."""
+    if is_virtual(wildcards.plot):
+        return []
+    return config["plots"][wildcards.plot]["tls"]
+
+
+def tls_args(wildcards):
+    """The TLS scans on the command line (virtual forest: every scan of the plot's folder)."""
+    if is_virtual(wildcards.plot):
+        return f"results/forest/plots/{wildcards.plot}/tls/scan_*.laz"
+    return " ".join(map(str, config["plots"][wildcards.plot]["tls"]))
+
+
+def builtin_methods():
+    return [m for m in METHODS if config["methods"][m]["kind"] in BUILTIN_KINDS]
+
+
+def methods_of_kind(kind):
+    """Wildcard pattern matching exactly the configured methods of ``kind`` (none: matches nothing)."""
+    names = [m for m in METHODS if config["methods"][m]["kind"] == kind]
+    return "|".join(map(re.escape, names)) or "(?!)"
+
+
+def pad_args(wildcards):
+    """PAD options from the config (only what the estimate itself depends on: not PADmax, which
+    the scaled methods apply per species)."""
+    p = config["pad"]
+    return (
+        f"--voxel-size {p['voxel_size']} --estimator {p.get('estimator', 'transmittance')} "
+        f"--min-pulses {p.get('min_pulses', 5)}"
+    )
+
+
+def recording_of(scenario):
+    return config["scenarios"][scenario].get("recording", scenario)
 
 
 # ---------------------------------------------------------------------------------------------
 # Targets
 # ---------------------------------------------------------------------------------------------
-def simulated_clouds():
-    """Every simulated cloud, results/{plot}/{method}/{scenario}/sim.laz."""
+def metric_tables():
+    """Per-tree metrics of every simulation and every reference."""
     return expand(
-        "results/{plot}/{method}/{scenario}/sim.laz",
+        "results/{plot}/{source}/{scenario}/metrics.csv",
         plot=PLOTS,
-        method=METHODS,
+        source=METHODS + ["reference"],
         scenario=SCENARIOS,
     )
 
 
-def pulse_tables():
-    """Every per-pulse table, results/{plot}/{method}/{scenario}/pulses.npz."""
+def voxel_models():
+    return expand("results/{plot}/{method}/voxels.npz", plot=PLOTS, method=METHODS)
+
+
+def timing_files():
     return expand(
-        "results/{plot}/{method}/{scenario}/pulses.npz",
-        plot=PLOTS,
-        method=METHODS,
-        scenario=SCENARIOS,
+        "results/{plot}/{method}/{scenario}/timing.json", plot=PLOTS, method=METHODS, scenario=SCENARIOS
     )
+
+
+def side_view_clouds():
+    """Tree clouds figure 13 reads (scaled vs fixed 0.25 m and the reference), where configured."""
+    sources = [m for m in ("scaled", "fixed_0.25") if m in METHODS] + ["reference"]
+    return expand("results/{plot}/{source}/{scenario}/trees.laz", plot=PLOTS, source=sources, scenario=SCENARIOS)
+
+
+def virtual_plots():
+    return [p for p in PLOTS if is_virtual(p)]
 
 
 def final_outputs():
-    """The default target: the virtual forest, every simulated cloud, the simulation summary."""
-    return ["results/forest"] + simulated_clouds() + ["results/summary/simulations.csv"]
+    """The default target: the summary tables, statistics, figures and findings."""
+    out = [
+        "results/summary/tree_metrics.csv",
+        "results/summary/voxel_counts.csv",
+        "results/summary/sim_times.csv",
+        "results/summary/stats/findings.md",
+        "results/summary/figures",
+    ]
+    if virtual_plots():
+        out.append("results/summary/pad_validation.csv")
+    return out
 
 
 def synth_param(wildcards=None):
@@ -140,9 +253,49 @@ def plot_param(wildcards):
     return json.dumps(config["plots"][wildcards.plot], sort_keys=True)
 
 
+def block_param(name):
+    """A top-level config block as canonical JSON (tracked as a param)."""
+
+    def get(wildcards=None):
+        return json.dumps(config.get(name, {}), sort_keys=True)
+
+    return get
+
+
 def method_param(wildcards):
     """The method's config block (tracked as a param)."""
     return json.dumps(config["methods"][wildcards.method], sort_keys=True)
+
+
+def method_groups(wildcards):
+    """Species groups for PAD-scaled methods only (so a PADmax change reruns only those)."""
+    m = config["methods"][wildcards.method]
+    return json.dumps(PAD_GROUPS if m["kind"] == "scaled" else {}, sort_keys=True)
+
+
+def method_pad(wildcards):
+    """The plot's PAD grid, for PAD-scaled methods only."""
+    m = config["methods"][wildcards.method]
+    return [f"results/{wildcards.plot}/pad/pad.vox"] if m["kind"] == "scaled" else []
+
+
+def method_pad_args(wildcards):
+    m = config["methods"][wildcards.method]
+    if m["kind"] != "scaled":
+        return ""
+    return f"--pad results/{wildcards.plot}/pad/pad.vox --min-pulses {config['pad']['min_pulses']}"
+
+
+def scenario_recording(wildcards):
+    return _plot_path(wildcards.plot, "recording", recording_of(wildcards.scenario))
+
+
+def scenario_trajectory(wildcards):
+    return _plot_path(wildcards.plot, "trajectory", recording_of(wildcards.scenario))
+
+
+def scenario_radius(wildcards):
+    return float(config["scenarios"][wildcards.scenario]["extraction_radius_m"])
 
 
 def scenario_param(wildcards):

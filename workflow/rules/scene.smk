@@ -1,11 +1,15 @@
-# Scene assembly per plot × method. Until the virtual forest lands, a plot of kind "demo" is the
-# embedded demo tree (vlsforest.demo): scene.yaml plus its parts (DEMO_PARTS) in one folder.
+# Scene assembly per plot × method (vlsforest.scene): ground plane, target stem meshes, voxel
+# crowns and surrounding trees, object ids per target stem and crown; HELIOS++ XML beside it.
 
 
 rule scene:
+    input:
+        voxels="results/{plot}/{method}/voxels.npz",
+        targets="results/{plot}/targets.csv",
+        site="results/{plot}/site.json",
+        stems="results/{plot}/stems",
     output:
-        scene="results/{plot}/{method}/scene/scene.yaml",
-        parts=expand("results/{{plot}}/{{method}}/scene/{part}", part=DEMO_PARTS),
+        directory("results/{plot}/{method}/scene"),
     log:
         "logs/scene/{plot}_{method}.log",
     benchmark:
@@ -13,13 +17,13 @@ rule scene:
     conda:
         "../../envs/vlsforest.yaml"
     resources:
-        mem_mb=2000,
+        mem_mb=4000,
         runtime=10,
     params:
-        plot=plot_param,
-        method=method_param,
-        seed=config["seed"],
-        library=SIM_HASH,
+        reflectance=lambda wc: json.dumps(config["scene"]["reflectance"], sort_keys=True),
+        helios=lambda wc: f"--helios results/{wc.plot}/{wc.method}/scene/helios" if config["scene"]["helios_export"] else "",
+        library=SCENE_HASH,
     shell:
-        "python -m vlsforest.cli demo --plot-json {params.plot:q} --method-json {params.method:q} "
-        "--seed {params.seed} -o {output.scene} > {log} 2>&1"
+        "python -m vlsforest.cli scene build --voxels {input.voxels} --targets {input.targets} "
+        "--site {input.site} --stems {input.stems} --reflectance-json {params.reflectance:q} "
+        "--method {wildcards.method} {params.helios} -o {output}/scene.yaml > {log} 2>&1"

@@ -1,13 +1,14 @@
-# Survey planning and simulation per plot × method × scenario, and a summary table.
+# Survey per plot × scenario (re-flying the recorded trajectory), simulation per
+# plot × method × scenario, and the simulated target-tree clouds.
 
 
 rule survey:
     input:
-        scene="results/{plot}/{method}/scene/scene.yaml",
+        unpack(plot_files),
     output:
-        survey="results/{plot}/{method}/{scenario}/survey.yaml",
+        "results/{plot}/surveys/{scenario}.yaml",
     log:
-        "logs/survey/{plot}_{method}_{scenario}.log",
+        "logs/survey/{plot}_{scenario}.log",
     conda:
         "../../envs/vlsforest.yaml"
     resources:
@@ -15,21 +16,23 @@ rule survey:
         runtime=5,
     params:
         scenario=scenario_param,
+        trajectory=scenario_trajectory,
         seed=scenario_seed,
         library=SIM_HASH,
     shell:
-        "python -m vlsforest.cli plan --scene {input.scene} --scenario-json {params.scenario:q} "
-        "--seed {params.seed} -o {output.survey} > {log} 2>&1"
+        "python -m vlsforest.cli plan --trajectory {params.trajectory} --scenario-json {params.scenario:q} "
+        "--seed {params.seed} -o {output} > {log} 2>&1"
 
 
 rule simulate:
     input:
-        scene="results/{plot}/{method}/scene/scene.yaml",
-        parts=expand("results/{{plot}}/{{method}}/scene/{part}", part=DEMO_PARTS),
-        survey="results/{plot}/{method}/{scenario}/survey.yaml",
+        scene="results/{plot}/{method}/scene",
+        survey="results/{plot}/surveys/{scenario}.yaml",
+        site="results/{plot}/site.json",
     output:
         laz="results/{plot}/{method}/{scenario}/sim.laz",
         pulses="results/{plot}/{method}/{scenario}/pulses.npz",
+        timing="results/{plot}/{method}/{scenario}/timing.json",
     log:
         "logs/simulate/{plot}_{method}_{scenario}.log",
     benchmark:
@@ -44,27 +47,46 @@ rule simulate:
         runtime=simulate_runtime,
     params:
         seed=scenario_seed,
+        margin=config["simulation"]["region_margin_m"],
         library=SIM_HASH,
     shell:
-        "python -m vlsforest.cli simulate {input.scene} {input.survey} -o {output.laz} "
-        "--pulses {output.pulses} --seed {params.seed} --workers {threads} > {log} 2>&1"
+        "python -m vlsforest.cli simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
+        "--pulses {output.pulses} --timing {output.timing} --seed {params.seed} --workers {threads} "
+        "--region-from {input.site} --region-margin {params.margin} > {log} 2>&1"
 
 
-rule simulation_summary:
+rule sim_trees:
     input:
-        laz=simulated_clouds(),
-        pulses=pulse_tables(),
+        laz="results/{plot}/{method}/{scenario}/sim.laz",
+        targets="results/{plot}/targets.csv",
     output:
-        csv="results/summary/simulations.csv",
+        "results/{plot}/{method}/{scenario}/trees.laz",
     log:
-        "logs/summary/simulations.log",
-    localrule: True
+        "logs/extract/{plot}_{method}_{scenario}.log",
     conda:
         "../../envs/vlsforest.yaml"
     resources:
-        mem_mb=2000,
+        mem_mb=4000,
         runtime=10,
     params:
-        library=SIM_HASH,
+        library=EXTRACT_HASH,
     shell:
-        "python -m vlsforest.cli summarize-sims {input.laz} -o {output.csv} > {log} 2>&1"
+        "python -m vlsforest.cli extract sim {input.laz} --targets {input.targets} -o {output} > {log} 2>&1"
+
+
+rule sim_times:
+    input:
+        timing_files(),
+    output:
+        report("results/summary/sim_times.csv", caption="../report/sim_times.rst", category="Tables"),
+    log:
+        "logs/summary/sim_times.log",
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    params:
+        library=METRICS_HASH,
+    shell:
+        "python -m vlsforest.cli collect times {input} -o {output} > {log} 2>&1"

@@ -16,7 +16,10 @@ from vlsforest import __version__
 from vlsforest.errors import VlsforestError
 
 #: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
-COMMANDS = ("synth", "demo", "plan", "simulate", "detect", "summarize-sims", "metrics")
+COMMANDS = (
+    "synth", "segment", "extract", "stems", "voxels", "pad", "scene", "demo", "plan", "simulate",
+    "detect", "summarize-sims", "metrics", "collect", "stats", "report", "diagnose",
+)
 
 
 def module_name(command: str) -> str:

@@ -36,6 +36,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--ground-z", type=float, default=0.0, metavar="Z", help="terrain height subtracted from z (default 0)"
     )
+    p.add_argument("--ground-table", type=Path, default=None, metavar="CSV",
+                   help="per-tree terrain height: a CSV with the tree id column (--ground-key) and z")
+    p.add_argument("--ground-key", default="tree_id", help="tree id column of --ground-table (default tree_id)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT.csv", help="output CSV")
     p.add_argument(
         "--multi-return",
@@ -60,7 +63,20 @@ def run(args) -> int:
 
     if not math.isfinite(args.ground_z):
         raise ConfigError(f"--ground-z: must be finite, got {args.ground_z}")
-    cloud = read_las(args.input)
+    ground = args.ground_z
+    if args.ground_table is not None:
+        import pandas as pd
+
+        if not args.ground_table.is_file():
+            raise InputDataError(f"{args.ground_table}: no such ground table")
+        gt = pd.read_csv(args.ground_table)
+        if not {args.ground_key, "z"} <= set(gt.columns):
+            raise InputDataError(f"{args.ground_table}: needs columns {args.ground_key!r} and 'z'")
+        if not gt["z"].map(math.isfinite).all():
+            raise InputDataError(f"{args.ground_table}: non-finite ground heights")
+        ground = {int(k): float(z) for k, z in zip(gt[args.ground_key], gt["z"])}
+    cloud = read_las(args.input, allow_empty=args.ground_table is not None)
+    tree_ids = sorted(ground) if isinstance(ground, dict) else None
     if args.tree_id not in cloud.attrs:
         raise InputDataError(
             f"{args.input}: no tree-id field {args.tree_id!r} (fields: {', '.join(sorted(cloud.attrs))})"
@@ -70,7 +86,8 @@ def run(args) -> int:
         df = cloud_metrics(
             cloud,
             args.tree_id,
-            ground_z=args.ground_z,
+            ground_z=ground,
+            tree_ids=tree_ids,
             multi_return=args.multi_return,
             cbh_convention=args.cbh_convention,
             source=str(args.input),

@@ -15,7 +15,9 @@ def register(sub) -> None:
                        description="Write SURVEY.yaml with flight lines that cover the scene's ground plane "
                                    "(or its bounds), from a scenario: scanner, pattern, altitude, speed, "
                                    "line spacing (see vlsforest.sim.planning).")
-    p.add_argument("--scene", required=True, help="SCENE.yaml whose extent to cover")
+    p.add_argument("--scene", help="SCENE.yaml whose extent to cover (patterns parallel / double_grid)")
+    p.add_argument("--trajectory", help="trajectory CSV (gps_time, x, y, z, …, source_id) to re-fly "
+                   "(pattern: trajectory)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", help="scenario YAML file")
     src.add_argument("--scenario-json", help="scenario as a JSON object")
@@ -44,8 +46,27 @@ def run(args) -> int:
         scenario = yaml.safe_load(path.read_text())
     if not isinstance(scenario, dict):
         raise ConfigError("the scenario must be a mapping")
-    ext, ground = Scene.from_yaml(args.scene).footprint()
-    survey = plan_survey(scenario, ext, ground)
+    if scenario.get("pattern") == "trajectory" or args.trajectory:
+        import pandas as pd
+
+        from vlsforest.errors import InputDataError
+        from vlsforest.sim.planning import survey_from_trajectory
+
+        if not args.trajectory:
+            raise ConfigError("pattern 'trajectory' needs --trajectory CSV")
+        tpath = Path(args.trajectory)
+        if not tpath.is_file():
+            raise InputDataError(f"{tpath}: no such trajectory file")
+        try:
+            traj = pd.read_csv(tpath)
+        except Exception as exc:
+            raise InputDataError(f"{tpath}: not a readable CSV ({exc})") from None
+        survey = survey_from_trajectory(scenario, traj, source=str(tpath))
+    else:
+        if not args.scene:
+            raise ConfigError("--scene is required for patterns 'parallel' and 'double_grid'")
+        ext, ground = Scene.from_yaml(args.scene).footprint()
+        survey = plan_survey(scenario, ext, ground)
     if args.seed is not None:
         survey["seed"] = int(args.seed)
     survey_from_dict(survey)  # validate before writing

@@ -17,6 +17,12 @@ def register(sub) -> None:
     p.add_argument("--hits", default=None, help="also write the sub-ray hits (.npz) for 'vlsforest detect'")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: all CPUs)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--timing", default=None, help="also write the run's timings and counts as JSON")
+    p.add_argument("--region", type=float, nargs=4, default=None, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+                   help="trace only pulses whose beam reaches this horizontal box (others are emitted, no returns)")
+    p.add_argument("--region-from", default=None, metavar="SITE.json",
+                   help="region = the 'targets_extent' of a site.json (vlsforest scene targets) widened by --region-margin")
+    p.add_argument("--region-margin", type=float, default=10.0, help="margin around the targets (m, default 10)")
     p.set_defaults(func=run)
 
 
@@ -26,14 +32,35 @@ def run(args) -> int:
 
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
+    region = args.region
+    if args.region_from is not None:
+        import json
+        from pathlib import Path
+
+        from vlsforest.errors import InputDataError
+
+        src = Path(args.region_from)
+        try:
+            ext = json.loads(src.read_text())["targets_extent"]
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise InputDataError(f"{src}: no 'targets_extent' to take the region from ({exc})") from None
+        m = float(args.region_margin)
+        region = [ext[0] - m, ext[1] - m, ext[2] + m, ext[3] + m]
     res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
-                   keep_pulses=args.pulses is not None, progress=not args.quiet)
+                   keep_pulses=args.pulses is not None, progress=not args.quiet, region=region)
     write_points(args.output, res)
     if args.pulses:
         write_pulses(args.pulses, res)
     if args.hits:
         save_hits(args.hits, res, scene)
     t = res.timings
+    if args.timing:
+        import json
+        from pathlib import Path
+
+        Path(args.timing).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.timing).write_text(json.dumps({k: (float(v) if isinstance(v, float) else v)
+                                                 for k, v in t.items()}, indent=1, sort_keys=True) + "\n")
     if not args.quiet:
         print(f"simulate: {t['n_pulses']} pulses, {t['n_points']} points in {t['total']:.1f} s "
               f"({t['n_pulses'] / max(t['total'], 1e-9):,.0f} pulses/s) → {args.output}", file=sys.stderr)

@@ -32,6 +32,9 @@ _STANDARD = {
     "classification": np.uint8,
     "user_data": np.uint8,
 }
+#: point format 6 flag fields packed into the byte ``classification_flags``: name → (bit, width)
+_FLAGS = {"synthetic": (0, 1), "key_point": (1, 1), "withheld": (2, 1), "overlap": (3, 1),
+          "scanner_channel": (4, 2), "scan_direction_flag": (6, 1), "edge_of_flight_line": (7, 1)}
 _SCALE = 1e-4
 
 
@@ -176,21 +179,39 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     if extra:
         attrs.update(extra)
     for name, arr in attrs.items():
-        if name in _STANDARD or name == "scan_angle":
+        if name in _STANDARD or name == "scan_angle" or name in _FLAGS:
             continue
         arr = np.asarray(arr)
         header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=arr.dtype))
-    las = laspy.LasData(header)
-    las.x = xyz[:, 0]
-    las.y = xyz[:, 1]
-    las.z = xyz[:, 2]
+    # the point records are filled field by field in one structured array (what laspy's
+    # per-dimension setters produce, without their re-allocations and range checks)
+    rec = np.zeros(len(xyz), dtype=header.point_format.dtype())
+    for i, ax in enumerate("XYZ"):
+        q = np.round((xyz[:, i] - header.offsets[i]) / header.scales[i])
+        lim = np.iinfo(np.int32)
+        if len(q) and (q.max() > lim.max or q.min() < lim.min):
+            raise InputDataError(f"{path}: coordinates too far apart for the 0.1 mm LAS scale")
+        rec[ax] = q
+    bits = np.zeros(len(xyz), dtype=np.uint8)
+    flags = np.zeros(len(xyz), dtype=np.uint8)
     for name, arr in attrs.items():
         arr = np.asarray(arr)
-        if name == "scan_angle":
-            las.scan_angle = np.clip(np.round(arr / 0.006), -30000, 30000).astype(np.int16)
+        if name in _FLAGS:
+            bit, width = _FLAGS[name]
+            flags |= (arr.astype(np.uint8) & ((1 << width) - 1)) << bit
+        elif name == "scan_angle":
+            rec["scan_angle"] = np.clip(np.round(arr / 0.006), -30000, 30000).astype(np.int16)
+        elif name in ("return_number", "number_of_returns"):  # 4-bit fields of one byte
+            v = arr.astype(np.uint8)
+            if len(v) and v.max() > 15:
+                raise InputDataError(f"{path}: {name} above 15 does not fit LAS point format 6")
+            bits |= v << (0 if name == "return_number" else 4)
         elif name in _STANDARD:
-            las[name] = arr.astype(_STANDARD[name])
+            rec[name] = arr.astype(_STANDARD[name])
         else:
-            las[name] = arr
+            rec[name] = arr
+    rec["bit_fields"] = bits
+    rec["classification_flags"] = flags
+    las = laspy.LasData(header, points=laspy.PackedPointRecord(rec, header.point_format))
     las.write(path)
     return path

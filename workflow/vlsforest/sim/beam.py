@@ -202,3 +202,34 @@ def _fan32(o, d, e1, tan_off, shift, out_o, out_d):
             out_d[r, 0] = x / nn
             out_d[r, 1] = y / nn
             out_d[r, 2] = z / nn
+
+
+@numba.njit(cache=True, inline="always")
+def cone_meets_box(o0, o1, o2, d0, d1, d2, lo, hi, tan_off):
+    """Whether the cone of half-angle ``atan(tan_off)`` around the ray ``o + t·d`` (t ≥ 0) can
+    meet the box ``[lo, hi]``: the box, padded by the cone's radius at the farthest distance
+    from ``o`` to the box, is tested against the central ray (a conservative test)."""
+    e0, e1, e2 = hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]
+    half_diag = 0.5 * np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    c0, c1, c2 = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])
+    reach = np.sqrt((o0 - c0) ** 2 + (o1 - c1) ** 2 + (o2 - c2) ** 2) + half_diag
+    pad = tan_off * reach + 1e-6
+    t_enter, t_exit = 0.0, np.inf
+    for ax in range(3):
+        o = o0 if ax == 0 else (o1 if ax == 1 else o2)
+        d = d0 if ax == 0 else (d1 if ax == 1 else d2)
+        a = lo[ax] - pad
+        b = hi[ax] + pad
+        if d == 0.0:
+            if o < a or o > b:
+                return False
+            continue
+        t1 = (a - o) / d
+        t2 = (b - o) / d
+        if t1 > t2:
+            t1, t2 = t2, t1
+        if t1 > t_enter:
+            t_enter = t1
+        if t2 < t_exit:
+            t_exit = t2
+    return t_exit >= t_enter

@@ -38,8 +38,9 @@ import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError, VlsforestError
-from vlsforest.sim.beam import subray_directions, subray_pattern, subray_rays32
-from vlsforest.sim.waveform import atmospheric_alpha, detect_returns, hit_energy
+from vlsforest.sim.beam import cone_meets_box, subray_directions, subray_pattern, subray_rays32
+from vlsforest.sim.waveform import (atmospheric_alpha, detect_returns, detect_traced, detection_constants,
+                                    energy_constants, hit_energy)
 
 _MODES = {
     "physical": dict(peak_rule="physical", ring_scale="helios", two_way_time=False, dedupe_ranges=False,
@@ -135,6 +136,19 @@ class _Job:
         self.classification = np.array([p.classification for p in scene.parts] + [0], dtype=np.uint8)
         self.labels = bool(getattr(scene, "has_labels", False))
         self.max_offset = float(np.abs(self.pattern.offsets).max()) * np.sqrt(2.0)
+        # without stored hits and with returns on the beam axis, detection runs fused with the
+        # hit collection (detect_traced) instead of building the hit arrays
+        self.fused = not keep_hits and self.opts.return_position == "axis"
+        self.tan_off = float(np.tan(self.max_offset))
+        self.range_min = float(sc.range_min_m)
+        self.energy_const = energy_constants(
+            n_subrays=self.pattern.n, average_power_w=sc.average_power_w, receiver_diameter_m=sc.receiver_diameter_m,
+            optical_efficiency=sc.optical_efficiency, range0=sc.range_min_m, m2=sc.beam_quality_factor,
+            atm_alpha=self.atm_alpha)
+        self.detection_const = detection_constants(
+            pulse_length_ns=sc.pulse_length_ns, bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns,
+            min_energy=sc.min_energy, max_returns=sc.max_returns, peak_rule=self.opts.peak_rule,
+            two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
             if region is not None:
@@ -156,8 +170,43 @@ def _run_block(b: int):
     job = _JOB
     start = b * job.block_slots
     stop = min(start + job.block_slots, job.survey.n_slots)
-    batch = job.survey.pulses(start, stop)
-    return _trace_and_detect(job, batch, np.random.default_rng([job.seed, b]))
+    rng = np.random.default_rng([job.seed, b])
+    if job.fused and not job.keep_pulses:
+        # only the emitted slots and the frames of the pulses whose beam reaches the scene are needed
+        slots, live, traced_batch = job.survey.pulses_toward(start, stop, job.box_lo, job.box_hi, job.tan_off)
+        if len(slots) == 0:
+            return _empty_block(job)
+        points, n_live = _trace_fused(job, traced_batch, rng)
+        n_ret = np.zeros(len(slots), np.int16)
+        n_ret[live] = n_live
+        return points, dict(slot=slots, n_returns=n_ret), None, len(live) * job.pattern.n
+    return _trace_and_detect(job, job.survey.pulses(start, stop), rng)
+
+
+def _cast(job: _Job, origin, direction, scan_dir):
+    """Trace the sub-ray fans of pulses: (t, part, cos_inc[, label]) per sub-ray, pulse-major."""
+    pat = job.pattern
+    if getattr(job.scene, "uses_embree", False):  # float32 rays straight into Embree's frame
+        o32, d32 = subray_rays32(origin, direction, scan_dir, pat, job.scene.shift)
+        return job.scene.trace_local(o32, d32, with_labels=job.labels)
+    dirs = subray_directions(direction, scan_dir, pat).reshape(-1, 3)
+    origins = np.repeat(origin, pat.n, axis=0)
+    return job.scene.trace(origins, dirs, with_labels=job.labels)
+
+
+def _trace_fused(job: _Job, batch, rng):
+    """Trace every pulse of ``batch`` and detect its returns in one pass over the cast
+    (:func:`detect_traced`); returns the points and the number of returns per pulse."""
+    nl = len(batch)
+    if nl == 0:
+        return _empty_block(job)[0], np.zeros(0, np.int16)
+    traced = _cast(job, batch.origin, batch.direction, batch.scan_dir)
+    t, part, cos_inc = traced[:3]
+    p, ranges, amp, ray, num, nof, n_ret = detect_traced(
+        t, part, cos_inc, np.arange(nl, dtype=np.int64), job.pattern.n, nl, job.range_min, job.pattern.frac,
+        job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
+    label = traced[3][ray] if job.labels else None
+    return _assemble(job, batch, p, ranges, amp, part[ray], label, num, nof, rng), n_ret
 
 
 def _trace_and_detect(job: _Job, batch, rng):
@@ -170,14 +219,18 @@ def _trace_and_detect(job: _Job, batch, rng):
     live = np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi,
                                           job.max_offset))
     nl = len(live)
-    if getattr(job.scene, "uses_embree", False):  # float32 rays straight into Embree's frame
-        o32, d32 = subray_rays32(batch.origin[live], batch.direction[live], batch.scan_dir[live], pat,
-                                 job.scene.shift)
-        traced = job.scene.trace_local(o32, d32, with_labels=job.labels)
-    else:
-        dirs = subray_directions(batch.direction[live], batch.scan_dir[live], pat).reshape(-1, 3)
-        origins = np.repeat(batch.origin[live], ns, axis=0)
-        traced = job.scene.trace(origins, dirs, with_labels=job.labels)
+    if job.fused:  # hits, energy, waveform and peaks in one pass over the cast
+        points, n_live = _trace_fused(job, batch.subset(live), rng)
+        n_ret = np.zeros(m, np.int16)
+        n_ret[live] = n_live
+        if job.keep_pulses:
+            pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
+                          scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
+                          n_returns=n_ret)
+        else:
+            pulses = dict(slot=batch.slot, n_returns=n_ret)
+        return points, pulses, None, nl * ns
+    traced = _cast(job, batch.origin[live], batch.direction[live], batch.scan_dir[live])
     t, part, cos_inc = traced[:3]
     label = traced[3] if job.labels else None
     idx, hpulse, ptr = _collect_hits(t, float(job.survey.scanner.range_min_m), ns, live.astype(np.int64), m)
@@ -229,33 +282,9 @@ def _beam_meets_box(origin, direction, lo, hi, max_offset):
 
 @numba.njit(cache=True)
 def _cone_box(origin, direction, lo, hi, tan_off, out):
-    half_diag = 0.5 * np.sqrt(((hi - lo) ** 2).sum())
-    c0, c1, c2 = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])
     for i in range(origin.shape[0]):
-        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
-        reach = np.sqrt((o0 - c0) ** 2 + (o1 - c1) ** 2 + (o2 - c2) ** 2) + half_diag
-        pad = tan_off * reach + 1e-6
-        t_enter, t_exit = 0.0, np.inf
-        ok = True
-        for ax in range(3):
-            o = origin[i, ax]
-            d = direction[i, ax]
-            a = lo[ax] - pad
-            b = hi[ax] + pad
-            if d == 0.0:
-                if o < a or o > b:
-                    ok = False
-                    break
-                continue
-            t1 = (a - o) / d
-            t2 = (b - o) / d
-            if t1 > t2:
-                t1, t2 = t2, t1
-            if t1 > t_enter:
-                t_enter = t1
-            if t2 < t_exit:
-                t_exit = t2
-        out[i] = ok and t_exit >= t_enter
+        out[i] = cone_meets_box(origin[i, 0], origin[i, 1], origin[i, 2], direction[i, 0], direction[i, 1],
+                                direction[i, 2], lo, hi, tan_off)
 
 
 def _detect(job: _Job, batch, ptr, hits, rng):
@@ -272,26 +301,39 @@ def _detect(job: _Job, batch, ptr, hits, rng):
                          bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns, min_energy=sc.min_energy,
                          max_returns=sc.max_returns, peak_rule=o.peak_rule, two_way_time=o.two_way_time,
                          dedupe_ranges=o.dedupe_ranges)
-    p = det["pulse"]
-    rng_ret = det["range"]
+    label = hits["label"][det["hit"]] if "label" in hits else None
+    weighted = None
+    if o.return_position != "axis":
+        def weighted(ranges):
+            return _weighted_positions(job, batch, ptr, hits, energy, det, ranges)
+    points = _assemble(job, batch, det["pulse"], det["range"], det["amplitude"], hpart[det["hit"]], label,
+                       det["return_number"], det["number_of_returns"], rng, weighted)
+    return points, det["n_returns"]
+
+
+def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, rng, weighted=None):
+    """The point arrays of detected returns: range noise, positions and per-point attributes.
+
+    ``p`` is the batch row of each return, ``part`` the scene part of its nearest sub-ray hit;
+    ``weighted`` (ranges → xyz) replaces the position on the central beam axis.
+    """
+    sc = job.survey.scanner
     if sc.range_noise_m > 0:
-        rng_ret = rng_ret + rng.normal(0.0, sc.range_noise_m, size=len(rng_ret))
-    if o.return_position == "axis":
-        xyz = batch.origin[p] + rng_ret[:, None] * batch.direction[p]
+        ranges = ranges + rng.normal(0.0, sc.range_noise_m, size=len(ranges))
+    if weighted is None:
+        xyz = batch.origin[p] + ranges[:, None] * batch.direction[p]
     else:
-        xyz = _weighted_positions(job, batch, ptr, hits, energy, det, rng_ret)
-    hp = hpart[det["hit"]]
-    amp = det["amplitude"]
+        xyz = weighted(ranges)
     points = dict(xyz=xyz, amplitude=amp.astype(np.float32),
                   intensity=np.clip(np.round(amp), 0, 65535).astype(np.uint16),
-                  return_number=np.minimum(det["return_number"], 15).astype(np.uint8),
-                  number_of_returns=np.minimum(det["number_of_returns"], 15).astype(np.uint8),
+                  return_number=np.minimum(ret_num, 15).astype(np.uint8),
+                  number_of_returns=np.minimum(n_of_ret, 15).astype(np.uint8),
                   gps_time=batch.gps_time[p], scan_angle=batch.scan_angle_deg[p],
-                  point_source_id=batch.source_id[p], object_id=job.object_id[hp],
-                  classification=job.classification[hp], pulse=batch.slot[p])
-    if "label" in hits:
-        points["label"] = hits["label"][det["hit"]]
-    return points, det["n_returns"]
+                  point_source_id=batch.source_id[p], object_id=job.object_id[part],
+                  classification=job.classification[part], pulse=batch.slot[p])
+    if label is not None:
+        points["label"] = label
+    return points
 
 
 def _weighted_positions(job, batch, ptr, hits, energy, det, ranges):

@@ -6,6 +6,10 @@ into a SURVEY mapping with legs that cover the plot.
   running ``margin_m`` beyond the plot in both directions; connecting legs are inactive.
 - ``pattern: double_grid`` (ULS): lines along x, then lines along y (a double grid),
   ``line_spacing_m`` apart, covering the plot plus ``margin_m``.
+- ``pattern: trajectory``: emulate a recorded flight (the study's scenarios "emulate the real
+  trajectories"): one straight active leg per flight line of a trajectory CSV (``gps_time, x, y,
+  z, …, source_id``) from its first to its last sample, inactive legs between lines, speed = the
+  median line speed (:func:`survey_from_trajectory`).
 
 Lines are placed over the plot widened by ``cross_margin_m`` across track (default 0): a wide
 scanner (±90°) also samples the plot from lines far beside it, which a real campaign over a
@@ -23,7 +27,8 @@ import numpy as np
 from vlsforest.errors import ConfigError
 
 _KEYS = {"scanner", "overrides", "detector", "pattern", "altitude_m", "speed_mps", "line_spacing_m",
-         "margin_m", "cross_margin_m", "n_lines", "seed", "trajectory_noise"}
+         "margin_m", "cross_margin_m", "n_lines", "seed", "trajectory_noise",
+         "recording", "extraction_radius_m"}  # the last two are for the workflow, not the flight
 
 
 def _lines(lo, hi, spacing, n_lines):
@@ -80,8 +85,10 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
     n_lines = int(scenario.get("n_lines", 0) or 0)
     legs = []
     pattern = scenario["pattern"]
+    if pattern == "trajectory":
+        raise ConfigError(f"{where}.pattern 'trajectory' needs a trajectory file (vlsforest plan --trajectory)")
     if pattern not in ("parallel", "double_grid"):
-        raise ConfigError(f"{where}.pattern must be 'parallel' or 'double_grid', got {pattern!r}")
+        raise ConfigError(f"{where}.pattern must be 'parallel', 'double_grid' or 'trajectory', got {pattern!r}")
     xs = _lines(xmin - cross, xmax + cross, spacing, n_lines)
     for i, x in enumerate(xs):  # lines along y, alternating direction
         y0, y1 = (ymin - margin, ymax + margin) if i % 2 == 0 else (ymax + margin, ymin - margin)
@@ -96,6 +103,62 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
             legs.append({"start": [x0, float(y), z], "end": [x1, float(y), z], "active": True})
     survey = {"scanner": scenario["scanner"], "platform": {"type": "linear",
                                                            "speed_mps": float(scenario["speed_mps"]), "legs": legs}}
+    for key in ("overrides", "detector", "trajectory_noise", "seed"):
+        if key in scenario:
+            survey[key] = scenario[key]
+    return survey
+
+
+def survey_from_trajectory(scenario: dict, trajectory, where: str = "scenario", source: str = "trajectory") -> dict:
+    """A SURVEY mapping that re-flies a recorded trajectory, one straight leg per flight line.
+
+    Parameters
+    ----------
+    scenario : dict
+        ``scanner`` and optional ``overrides``, ``detector``, ``seed``, ``trajectory_noise``
+        (flight-geometry keys are ignored: the trajectory gives them).
+    trajectory : DataFrame
+        Columns ``gps_time, x, y, z, source_id`` (one row per trajectory sample).
+    where, source : str
+        Names for error messages (config key, trajectory file).
+
+    Returns
+    -------
+    dict
+    """
+    if "scanner" not in scenario:
+        raise ConfigError(f"{where}.scanner is required")
+    need = {"gps_time", "x", "y", "z", "source_id"}
+    cols = set(getattr(trajectory, "columns", ()))
+    if not need <= cols:
+        from vlsforest.errors import InputDataError
+
+        raise InputDataError(f"{source}: trajectory needs columns {sorted(need)}, has {sorted(cols)}")
+    t = trajectory.sort_values(["source_id", "gps_time"], kind="stable")
+    vals = t[["gps_time", "x", "y", "z"]].to_numpy(float)
+    if len(t) < 2 or not np.isfinite(vals).all():
+        from vlsforest.errors import InputDataError
+
+        raise InputDataError(f"{source}: trajectory needs ≥ 2 finite samples")
+    legs, speeds = [], []
+    for sid, g in t.groupby("source_id", sort=True):
+        a = g[["gps_time", "x", "y", "z"]].to_numpy(float)
+        if len(a) < 2 or a[-1, 0] <= a[0, 0]:
+            continue
+        start, end = a[0, 1:].tolist(), a[-1, 1:].tolist()
+        dist = float(np.linalg.norm(a[-1, 1:] - a[0, 1:]))
+        if dist <= 0:
+            continue
+        speeds.append(dist / (a[-1, 0] - a[0, 0]))
+        if legs:
+            legs.append({"start": legs[-1]["end"], "end": start, "active": False})
+        legs.append({"start": start, "end": end, "active": True})
+    if not legs:
+        from vlsforest.errors import InputDataError
+
+        raise InputDataError(f"{source}: no flight line with two distinct samples")
+    survey = {"scanner": scenario["scanner"],
+              "platform": {"type": "linear", "speed_mps": float(np.median(speeds)), "legs": legs}}
     for key in ("overrides", "detector", "trajectory_noise", "seed"):
         if key in scenario:
             survey[key] = scenario[key]

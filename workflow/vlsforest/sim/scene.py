@@ -10,6 +10,7 @@ SCENE.yaml::
       - {id: 4, type: vox, path: crown.vox, mode: scaled, pad_max: 8, alpha: 0.5,
          random_shift: true, seed: 1}
       - {id: 5, type: voxels, path: centres.csv, size: 0.25}               # x,y,z[,size]
+      - {id: 7, type: voxels, path: crown.npz}                             # vlsforest.voxels.VoxelModel
       - {id: 6, type: voxels, points: tls.laz, size: 0.02, min_points: 1}  # voxelise points
 
 Every part has an integer object ``id`` (written per return as ``object_id``) and a material:
@@ -48,7 +49,7 @@ _PART_KEYS = {
     "plane": {"z", "extent"},
     "mesh": {"path"},
     "vox": {"path", "mode", "pad_max", "alpha", "random_shift", "seed", "pad_column"},
-    "voxels": {"path", "points", "size", "min_points"},
+    "voxels": {"path", "points", "size", "min_points"},  # path: CSV (needs size) or .npz model
 }
 _COMMON_KEYS = {"id", "type", "reflectance", "specularity", "shininess", "classification", "name"}
 
@@ -214,7 +215,7 @@ class Scene:
         """Build a scene from a parsed SCENE.yaml mapping."""
         if not isinstance(cfg, dict) or "parts" not in cfg:
             raise ConfigError(f"{source}: needs a top-level 'parts:' list")
-        extra = set(cfg) - {"parts", "voxel_backend"}
+        extra = set(cfg) - {"parts", "voxel_backend", "name"}
         if extra:
             raise ConfigError(f"{source}: unknown top-level key(s) {sorted(extra)}")
         parts = cfg["parts"]
@@ -419,14 +420,13 @@ class Scene:
         self.prepare()
         res = self._embree.run(o32, d32, output=1)
         gid = res["geomID"]
-        hit = gid >= 0
         n = len(gid)
-        t = np.where(hit, res["tfar"], np.inf).astype(np.float64)
-        part = np.full(n, -1, dtype=np.int32)
-        part[hit] = self._embree_parts[gid[hit]]
-        cos_inc = np.zeros(n)
-        _abs_cos(res["Ng"], d32, gid, cos_inc)
+        t = np.empty(n)
+        part = np.empty(n, dtype=np.int32)
+        cos_inc = np.empty(n)
+        _embree_hits(res["tfar"], gid, res["Ng"], d32, self._embree_parts, t, part, cos_inc)
         label = np.zeros(n, dtype=np.uint8) if with_labels else None
+        hit = gid >= 0 if with_labels else None
         if with_labels and hit.any():
             hidx = np.flatnonzero(hit)
             g = gid[hit]
@@ -465,13 +465,21 @@ class Scene:
 
 # ---------------------------------------------------------------------- helpers
 @numba.njit(cache=True)
-def _abs_cos(ng, d, gid, out):
+def _embree_hits(tfar, gid, ng, d, parts, t, part, cos_inc):
+    """Embree's answer as range (inf: no hit), scene part (−1: none) and |cos| of the incidence
+    angle (0: none; float32 arithmetic on Embree's geometric normal), in one pass."""
     for i in range(gid.shape[0]):
-        if gid[i] >= 0:
+        g = gid[i]
+        t[i] = np.inf
+        part[i] = -1
+        cos_inc[i] = 0.0
+        if g >= 0:
+            t[i] = np.float64(tfar[i])
+            part[i] = parts[g]
             nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]
             nn = np.sqrt(nx * nx + ny * ny + nz * nz)
             if nn > 0:
-                out[i] = abs(nx * d[i, 0] + ny * d[i, 1] + nz * d[i, 2]) / nn
+                cos_inc[i] = abs(nx * d[i, 0] + ny * d[i, 1] + nz * d[i, 2]) / nn
 
 
 def _load_yaml(path: Path, what: str):
@@ -566,9 +574,19 @@ def _add_part_from_dict(scene: Scene, p, base: Path, where: str) -> None:
                 raise InputDataError(f"{path_of('path')}: every voxel has PAD 0 or NaN — nothing to scale")
         scene.add_voxels(oid, ijk, vox.min_corner, vox.res, half, centre, mat, cls_, name)
     else:  # voxels
-        size = _num(p, "size", where, positive=True)
         if ("path" in p) == ("points" in p):
-            raise ConfigError(f"{where}: give exactly one of 'path' (voxel centres CSV) or 'points'")
+            raise ConfigError(f"{where}: give exactly one of 'path' (voxel centres CSV or model .npz) or 'points'")
+        if "path" in p and str(p["path"]).lower().endswith(".npz"):
+            from vlsforest.voxels import VoxelModel
+
+            model = VoxelModel.load(path_of("path"))
+            if model.n_voxels == 0:
+                raise InputDataError(f"{path_of('path')}: voxel model holds no voxels")
+            half = None if model.half is None else model.half
+            scene.add_voxels(oid, model.ijk, np.zeros(3), model.size, half,
+                             None if half is None else model.centres(), mat, cls_, name)
+            return
+        size = _num(p, "size", where, positive=True)
         if "points" in p:
             ijk = voxelise_points(_read_points(path_of("points")), size,
                                   _num(p, "min_points", where, default=1, integer=True, positive=True))

@@ -62,11 +62,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import numba
 import numpy as np
 import pandas as pd
 import yaml
 
 from vlsforest.errors import ConfigError
+from vlsforest.sim.beam import cone_meets_box
 from vlsforest.sim.scanner import (
     ScannerSettings,
     apply_overrides,
@@ -397,6 +399,72 @@ class Survey:
             source_id=self._src[seg],
         )
 
+    def pulses_toward(self, start: int, stop: int, lo, hi, tan_off: float):
+        """The emitted slots of ``[start, stop)`` and the pulses among them whose beam cone can
+        meet a box.
+
+        Gives what :meth:`pulses` followed by the cone test
+        :func:`vlsforest.sim.beam.cone_meets_box` give, but for the usual surveys (no trajectory
+        noise; polygon, rotating, oscillating or TLS deflector) in one compiled pass that builds
+        the full pulse frame only for the pulses that pass (most slots of a ULS survey over a
+        plot are either not emitted or aimed away from the scene).
+
+        Parameters
+        ----------
+        start, stop : int
+            Slot range.
+        lo, hi : array_like, shape (3,)
+            The box; with a non-finite corner no pulse passes.
+        tan_off : float
+            Tangent of the cone's half angle.
+
+        Returns
+        -------
+        slot : ndarray of int64
+            Every emitted slot of the range.
+        live : ndarray of int64
+            Index into ``slot`` of the pulses that pass.
+        batch : PulseBatch
+            Those pulses.
+        """
+        lo = np.asarray(lo, np.float64)
+        hi = np.asarray(hi, np.float64)
+        start, stop = int(start), int(stop)
+        finite = bool(np.isfinite(lo).all() and np.isfinite(hi).all())
+        s = self.scanner
+        kind = {"polygon": 0, "rotating": 1, "oscillating": 2, "tls": 3}.get(s.deflector, -1)
+        if self._noise is not None or kind < 0 or not 0 <= start <= stop <= self.n_slots or start == stop:
+            batch = self.pulses(start, stop)
+            out = np.zeros(len(batch), dtype=np.bool_)
+            if finite:
+                _cone_box_all(batch.origin, batch.direction, lo, hi, float(tan_off), out)
+            live = np.flatnonzero(out)
+            return batch.slot, live, batch.subset(live)
+        if kind == 0:
+            a, b = -s.max_scan_angle_deg, 2.0 * s.max_scan_angle_deg
+            window = s.scan_angle_deg * (1 + 1e-12)
+        elif kind == 1:
+            a, b = -180.0, 360.0
+            window = min(s.max_scan_angle_deg, s.scan_angle_deg) * (1 + 1e-12)
+        elif kind == 2:
+            a, b = s.scan_angle_deg, 2.0 * s.scan_angle_deg
+            window = np.inf
+        if kind == 3:
+            az, el = tls_grid(s)
+            az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
+            freq = 0.0
+            a = b = window = 0.0
+        else:
+            az_r = el_r = el_deg = np.zeros(0)
+            freq = float(s.scan_freq_hz)
+        rot = np.array([[np.asarray(e, np.float64) for e in row] for row in self._rot]).reshape(3, 3, -1)
+        out = _pulses_toward(start, stop, self._offsets, self._t0, self._p0, self._vel, np.ascontiguousarray(rot),
+                             kind, freq, float(s.prf_hz), float(a), float(b), float(window), az_r, el_r, el_deg, finite,
+                             lo, hi, float(tan_off))
+        slot, live, seg, t, origin, direction, scan_dir, angle = out
+        return slot, live, PulseBatch(slot=slot[live], gps_time=t, origin=origin, direction=direction,
+                                      scan_dir=scan_dir, scan_angle_deg=angle, source_id=self._src[seg])
+
     def trajectory(self, rate_hz: float = 10.0, nominal: bool = False) -> pd.DataFrame:
         """Platform positions and attitude over the active legs / scans.
 
@@ -472,6 +540,140 @@ class Survey:
                 raise ValueError(f"leg {lg.source_id} is not above ground_z = {ground_z}")
             out.append(math.inf if theta >= 90.0 else 2.0 * h * math.tan(math.radians(theta)))
         return np.array(out)
+
+
+# --------------------------------------------------------------------------- compiled pulses
+
+
+@numba.njit(cache=True)
+def _cone_box_all(origin, direction, lo, hi, tan_off, out):
+    for i in range(origin.shape[0]):
+        out[i] = cone_meets_box(origin[i, 0], origin[i, 1], origin[i, 2], direction[i, 0], direction[i, 1],
+                                direction[i, 2], lo, hi, tan_off)
+
+
+@numba.njit(cache=True, inline="always")
+def _may_meet(sl, k, seg, r, p0, vel, rot, prf, lo, hi, tan_off):
+    """A cheap necessary condition of the cone test for an across-track beam at ``r`` radians.
+
+    The beam direction is taken from float32 sine and cosine (error < 1e-6) and tested
+    against the ball around the padded box (the exact test's box, padded as it pads it), with
+    a margin that covers the direction error over the distance involved: when this returns
+    False the exact test fails too, so its costlier float64 trigonometry can be skipped.
+    """
+    dt = k / prf
+    o0 = p0[seg, 0] + dt * vel[seg, 0]
+    o1 = p0[seg, 1] + dt * vel[seg, 1]
+    o2 = p0[seg, 2] + dt * vel[seg, 2]
+    r32 = np.float32(r)
+    sa = np.float64(np.sin(r32))
+    ca = np.float64(np.cos(r32))
+    d0 = rot[0, 0, seg] * sa - rot[0, 2, seg] * ca
+    d1 = rot[1, 0, seg] * sa - rot[1, 2, seg] * ca
+    d2 = rot[2, 0, seg] * sa - rot[2, 2, seg] * ca
+    h0, h1, h2 = 0.5 * (hi[0] - lo[0]), 0.5 * (hi[1] - lo[1]), 0.5 * (hi[2] - lo[2])
+    v0, v1, v2 = 0.5 * (lo[0] + hi[0]) - o0, 0.5 * (lo[1] + hi[1]) - o1, 0.5 * (lo[2] + hi[2]) - o2
+    vv = v0 * v0 + v1 * v1 + v2 * v2
+    dist = np.sqrt(vv)
+    pad = tan_off * (dist + np.sqrt(h0 * h0 + h1 * h1 + h2 * h2)) + 1e-6
+    big_r = np.sqrt((h0 + pad) ** 2 + (h1 + pad) ** 2 + (h2 + pad) ** 2)
+    proj = v0 * d0 + v1 * d1 + v2 * d2
+    d2_min = vv if proj <= 0.0 else vv - proj * proj
+    lim = big_r * (1.0 + 1e-9) + (dist + big_r) * 4e-6 + 1e-6
+    return d2_min <= lim * lim
+
+
+@numba.njit(cache=True)
+def _pulses_toward(start, stop, offsets, t0, p0, vel, rot, kind, freq, prf, a, b, window, az_r, el_r, el_deg, finite,
+                   lo, hi, tan_off):
+    """:meth:`Survey.pulses_toward` without trajectory noise, slot by slot.
+
+    Every operation repeats, in the same order and precision, what :meth:`Survey.pulses`,
+    :func:`~vlsforest.sim.scanner.deflect` (``kind`` 0 polygon, 1 rotating, 2 oscillating,
+    3 tls) and the cone test compute on arrays, so the pulses are bit-identical. For the
+    across-track deflectors the angle is ``a + b·phase`` (oscillating: ``±(a − b·phase)`` on
+    alternate lines) and a pulse is emitted when ``|angle| <= window``; ``az_r``/``el_r`` are
+    the TLS grid in radians, ``el_deg`` its elevations in degrees.
+    """
+    n = stop - start
+    slot = np.empty(n, np.int64)
+    live = np.empty(n, np.int64)
+    seg_o = np.empty(n, np.int64)
+    t_o = np.empty(n)
+    org = np.empty((n, 3))
+    dr = np.empty((n, 3))
+    sd = np.empty((n, 3))
+    ang = np.empty(n)
+    n_el = el_r.shape[0]
+    seg = 0
+    while offsets[seg + 1] <= start:
+        seg += 1
+    ne = 0
+    nl = 0
+    for sl in range(start, stop):
+        while offsets[seg + 1] <= sl:
+            seg += 1
+        k = sl - offsets[seg]
+        if kind == 3:
+            ia = k // n_el
+            ie = k - ia * n_el
+            ar = az_r[ia]
+            er = el_r[ie]
+            sa, ca, se, ce = np.sin(ar), np.cos(ar), np.sin(er), np.cos(er)
+            v0, v1, v2 = ce * sa, ce * ca, se
+            w0, w1, w2 = -se * sa, -se * ca, ce
+            angle = el_deg[ie]
+        else:
+            x = np.float64(k) * freq
+            line = np.floor(x / prf)
+            frac = (x - line * prf) / prf
+            if frac < 0:
+                line -= 1
+                frac += 1
+            if frac >= 1:
+                line += 1
+                frac -= 1
+            back = False
+            if kind == 2:
+                back = (np.int64(line) % 2) == 1
+                angle = a - b * frac if back else -a + b * frac
+            else:
+                angle = a + b * frac
+                if not abs(angle) <= window:
+                    continue
+            r = np.radians(angle)
+            if not finite or not _may_meet(sl, k, seg, r, p0, vel, rot, prf, lo, hi, tan_off):
+                slot[ne] = sl  # emitted, but its beam surely misses the box: no frame needed
+                ne += 1
+                continue
+            sa, ca = np.sin(r), np.cos(r)
+            v0, v1, v2 = sa, 0.0, -ca
+            w0, w1, w2 = ca, 0.0, sa
+            if back:
+                w0, w1, w2 = -w0, -w1, -w2
+        slot[ne] = sl
+        ne += 1
+        dt = k / prf
+        o0 = p0[seg, 0] + dt * vel[seg, 0]
+        o1 = p0[seg, 1] + dt * vel[seg, 1]
+        o2 = p0[seg, 2] + dt * vel[seg, 2]
+        d0 = rot[0, 0, seg] * v0 + rot[0, 1, seg] * v1 + rot[0, 2, seg] * v2
+        d1 = rot[1, 0, seg] * v0 + rot[1, 1, seg] * v1 + rot[1, 2, seg] * v2
+        d2 = rot[2, 0, seg] * v0 + rot[2, 1, seg] * v1 + rot[2, 2, seg] * v2
+        if not (finite and cone_meets_box(o0, o1, o2, d0, d1, d2, lo, hi, tan_off)):
+            continue
+        live[nl] = ne - 1
+        seg_o[nl] = seg
+        t_o[nl] = t0[seg] + dt
+        org[nl, 0], org[nl, 1], org[nl, 2] = o0, o1, o2
+        dr[nl, 0], dr[nl, 1], dr[nl, 2] = d0, d1, d2
+        sd[nl, 0] = rot[0, 0, seg] * w0 + rot[0, 1, seg] * w1 + rot[0, 2, seg] * w2
+        sd[nl, 1] = rot[1, 0, seg] * w0 + rot[1, 1, seg] * w1 + rot[1, 2, seg] * w2
+        sd[nl, 2] = rot[2, 0, seg] * w0 + rot[2, 1, seg] * w1 + rot[2, 2, seg] * w2
+        ang[nl] = angle
+        nl += 1
+    return (slot[:ne].copy(), live[:nl].copy(), seg_o[:nl].copy(), t_o[:nl].copy(), org[:nl].copy(),
+            dr[:nl].copy(), sd[:nl].copy(), ang[:nl].copy())
 
 
 # --------------------------------------------------------------------------- parsing

@@ -123,14 +123,21 @@ def _one_energy(r, w, cos_inc, refl, spec, shin, scale, alpha):
     return e
 
 
+@numba.njit(cache=True, inline="always")
+def _subray_hit_energy(r, frac, cos_inc, refl, spec, shin, scale, r0, m2, alpha):
+    """Energy of one sub-ray hit at fractional ring radius ``frac``: its Gaussian beam weight
+    ``exp(-2 (frac·M²)² R²/(R² + R0²))`` times :func:`_one_energy`."""
+    rr = max(r, 1e-6)
+    f = frac * m2
+    w = np.exp(-2.0 * f * f * rr * rr / (rr * rr + r0 * r0))
+    return _one_energy(r, w, cos_inc, refl, spec, shin, scale, alpha)
+
+
 @numba.njit(cache=True)
 def _hit_energy_kernel(r, sub, cos_inc, part, frac, refl, spec, shin, scale, r0, m2, alpha, out):
     for i in range(r.shape[0]):
-        rr = max(r[i], 1e-6)
-        f = frac[sub[i]] * m2
-        w = np.exp(-2.0 * f * f * rr * rr / (rr * rr + r0 * r0))
         q = part[i]
-        out[i] = _one_energy(r[i], w, cos_inc[i], refl[q], spec[q], shin[q], scale, alpha)
+        out[i] = _subray_hit_energy(r[i], frac[sub[i]], cos_inc[i], refl[q], spec[q], shin[q], scale, r0, m2, alpha)
 
 
 @numba.njit(cache=True)
@@ -139,7 +146,7 @@ def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
         out[i] = _one_energy(r[i], w[i], cos_inc[i], refl[i], spec[i], shin[i], scale, alpha)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_returns,
                 helios_rule, dedupe, wave, out_range, out_amp, out_sub):
     """Detect the returns of one pulse; returns the number written to the out arrays."""
@@ -163,9 +170,11 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
         last = d
         b = int((d - d_min) / bin_m)
         e = energy[s]
-        for i in range(npulse):
-            if b + i < nbins:
-                wave[b + i] += shape[i] * e
+        lim = min(npulse, nbins - b)  # the pulse shape, clipped at the end of the waveform
+        if lim > 0:
+            w = wave[b:b + lim]  # a view: the compiler vectorises the loop
+            for i in range(lim):
+                w[i] += shape[i] * e
     found = 0
     for i in range(nbins):
         v = wave[i]
@@ -229,7 +238,7 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
     return found
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _stable_order(x, buf):
     """Stable ascending order of a short array (insertion sort into ``buf``)."""
     n = x.shape[0]
@@ -320,14 +329,152 @@ def detect_returns(ptr, ranges, energy, *, pulse_length_ns=4.0, bin_size_ns=0.25
         (index of the sub-ray hit nearest in range), ``return_number``, ``number_of_returns``;
         and ``n_returns`` per pulse.
     """
+    const = detection_constants(pulse_length_ns=pulse_length_ns, bin_size_ns=bin_size_ns,
+                                window_size_ns=window_size_ns, min_energy=min_energy, max_returns=max_returns,
+                                peak_rule=peak_rule, two_way_time=two_way_time, dedupe_ranges=dedupe_ranges)
+    ptr = np.asarray(ptr, dtype=np.int64)
+    res = _detect_all(ptr, np.asarray(ranges, np.float64), np.asarray(energy, np.float64), *const)
+    keys = ("pulse", "range", "amplitude", "hit", "return_number", "number_of_returns", "n_returns")
+    return dict(zip(keys, res))
+
+
+def detection_constants(*, pulse_length_ns=4.0, bin_size_ns=0.25, window_size_ns=1.0, min_energy=0.0,
+                        max_returns=0, peak_rule="physical", two_way_time=False, dedupe_ranges=False) -> tuple:
+    """The detection settings as the positional constants of the peak-detection kernels.
+
+    Parameters are those of :func:`detect_returns`.
+
+    Returns
+    -------
+    tuple
+        ``(shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe, max_per_pulse)``:
+        the sampled pulse shape, the index of its maximum, the bin length in metres, the
+        window in bins, the amplitude threshold, the return cap (0: none), the peak rule and
+        duplicate-range switches, and the most returns one pulse can yield.
+    """
     shape = pulse_shape(pulse_length_ns, bin_size_ns)
     peak_index = int(np.argmax(shape))
     bin_m = C_M_PER_NS * bin_size_ns / (2.0 if two_way_time else 1.0)
     win = int(np.floor(window_size_ns / bin_size_ns + 1e-9))
     eps = 0.001 if (peak_rule == "helios" and min_energy <= 0) else float(min_energy)
     max_per = int(max_returns) if max_returns and max_returns > 0 else 32
-    ptr = np.asarray(ptr, dtype=np.int64)
-    res = _detect_all(ptr, np.asarray(ranges, np.float64), np.asarray(energy, np.float64), shape, peak_index,
-                      bin_m, win, eps, int(max_returns), peak_rule == "helios", bool(dedupe_ranges), max_per)
-    keys = ("pulse", "range", "amplitude", "hit", "return_number", "number_of_returns", "n_returns")
-    return dict(zip(keys, res))
+    return (shape, peak_index, float(bin_m), win, eps, int(max_returns), peak_rule == "helios", bool(dedupe_ranges),
+            max_per)
+
+
+def energy_constants(*, n_subrays, average_power_w, receiver_diameter_m, optical_efficiency, range0=0.0, m2=1.0,
+                     atm_alpha=0.0) -> tuple:
+    """The energy settings of :func:`hit_energy` as the constants ``(scale, range0, m2, atm_alpha)``
+    of :func:`detect_traced`."""
+    return (_energy_scale(average_power_w, receiver_diameter_m, optical_efficiency, n_subrays), float(range0),
+            float(m2), float(atm_alpha))
+
+
+def detect_traced(t, part, cos_inc, live, n_subrays, n_pulses, range_min, frac, refl_pct, spec, shin, energy_const,
+                  detection_const):
+    """Hits, energy, waveform and peaks of traced pulses in one pass, straight from the cast.
+
+    Gives exactly what :func:`hit_energy` followed by :func:`detect_returns` give on the
+    collected hits (the sub-ray hits with ``range_min <= t < inf`` of each pulse, in sub-ray
+    order, with |cos| rounded to float32 as stored), without building the hit arrays.
+
+    Parameters
+    ----------
+    t, part, cos_inc : ndarray, shape (len(live) · n_subrays,)
+        The cast of the sub-rays, pulse-major: range (inf: no hit), scene part, |cos| incidence.
+    live : ndarray of int64
+        Row (among the ``n_pulses`` pulses of the batch) of each traced pulse.
+    n_subrays, n_pulses : int
+    range_min : float
+        Hits nearer than this are ignored.
+    frac, refl_pct, spec, shin : ndarray
+        Fractional ring radius per sub-ray; reflectance (%), Phong ks and exponent per part.
+    energy_const, detection_const : tuple
+        From :func:`energy_constants` and :func:`detection_constants`.
+
+    Returns
+    -------
+    tuple of ndarray
+        Per return: ``pulse`` (row in the batch), ``range``, ``amplitude``, ``ray`` (index of
+        the sub-ray hit nearest in range, into ``t``), ``return_number``,
+        ``number_of_returns``; and ``n_returns`` per pulse (length ``n_pulses``).
+    """
+    return _detect_traced(t, part, cos_inc, live, int(n_subrays), int(n_pulses), float(range_min), frac, refl_pct,
+                          spec, shin, *energy_const, *detection_const)
+
+
+@numba.njit(cache=True)
+def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, shin, scale, r0, m2, alpha,
+                   shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe, max_per_pulse):
+    nl = live.shape[0]
+    cap = 2 * nl + max_per_pulse
+    r_pulse = np.empty(cap, np.int64)
+    r_range = np.empty(cap, np.float64)
+    r_amp = np.empty(cap, np.float64)
+    r_ray = np.empty(cap, np.int64)
+    r_num = np.empty(cap, np.int16)
+    r_nret = np.empty(cap, np.int16)
+    nret = np.zeros(m, np.int16)
+    rr = np.empty(ns, np.float64)
+    en = np.empty(ns, np.float64)
+    ray = np.empty(ns, np.int64)
+    order_buf = np.empty(1024, np.int64)
+    wave = np.empty(shape.shape[0] + 64, np.float64)
+    o_range = np.empty(max_per_pulse, np.float64)
+    o_amp = np.empty(max_per_pulse, np.float64)
+    o_sub = np.empty(max_per_pulse, np.int64)
+    k = 0
+    for j in range(nl):
+        n = 0
+        lo = np.inf
+        hi = -np.inf
+        base = j * ns
+        for s in range(ns):
+            i = base + s
+            d = t[i]
+            if d < np.inf and d >= range_min:
+                q = part[i]
+                c = np.float64(np.float32(cos_inc[i]))  # |cos| is kept as float32 with the hits
+                rr[n] = d
+                en[n] = _subray_hit_energy(d, frac[s], c, refl[q], spec[q], shin[q], scale, r0, m2, alpha)
+                ray[n] = i
+                n += 1
+                lo = min(lo, d)
+                hi = max(hi, d)
+        if n == 0:
+            continue
+        need = int((hi - lo) / bin_m) + shape.shape[0] + 2
+        if need > wave.shape[0]:
+            wave = np.empty(2 * need, np.float64)
+        r = rr[:n]
+        order = _stable_order(r, order_buf) if n <= 1024 else np.argsort(r, kind="mergesort")
+        f = _detect_one(r, en[:n], order, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
+                        wave, o_range, o_amp, o_sub)
+        if f == 0:
+            continue
+        p = live[j]
+        nret[p] = f
+        if k + f > cap:
+            cap = 2 * cap + f
+            r_pulse = _grow(r_pulse, cap, k)
+            r_range = _grow(r_range, cap, k)
+            r_amp = _grow(r_amp, cap, k)
+            r_ray = _grow(r_ray, cap, k)
+            r_num = _grow(r_num, cap, k)
+            r_nret = _grow(r_nret, cap, k)
+        for q in range(f):
+            r_pulse[k] = p
+            r_range[k] = o_range[q]
+            r_amp[k] = o_amp[q]
+            r_ray[k] = ray[o_sub[q]]
+            r_num[k] = q + 1
+            r_nret[k] = f
+            k += 1
+    return r_pulse[:k], r_range[:k], r_amp[:k], r_ray[:k], r_num[:k], r_nret[:k], nret
+
+
+@numba.njit(cache=True)
+def _grow(a, cap, k):
+    out = np.empty(cap, a.dtype)
+    out[:k] = a[:k]
+    return out

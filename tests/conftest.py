@@ -1,0 +1,28 @@
+"""Shared fixtures: a small virtual forest, recorded once per test session.
+
+The forest is the ``quick`` preset (plot ``Q1``, 4 targets, ~60 surrounding trees) recorded with
+the quick workflow's TLS settings (5 positions, 0.25° steps, no tilted scans) and the default
+"real" recording physics. Stages downstream of synth (segmentation, stems, PAD, voxels, scenes)
+test against it; only validation code may read its ``truth/`` folder.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+#: the synth settings of ``config/quick.yaml`` (kept in step by tests/test_workflow.py)
+QUICK_SYNTH = {
+    "forest": {"preset": "quick"},
+    "tls": {"n_positions": 5, "step_deg": 0.25, "n_tilted": 0},
+    "recordings": {"uls": {"repeats": 1, "cross_margin_m": 30}},
+}
+
+
+@pytest.fixture(scope="session")
+def quick_forest(tmp_path_factory):
+    """Folder of the recorded quick forest (``plots/Q1/…``, ``truth/…``); built once (~40 s)."""
+    from vlsforest.synth.record import synthesize
+
+    out = tmp_path_factory.mktemp("quick_forest") / "forest"
+    synthesize(QUICK_SYNTH, out, seed=0, quiet=True)
+    return out

@@ -1,0 +1,382 @@
+"""Tests of vlsforest.stats and ``vlsforest stats``: errors, summaries, tests, Table 5, findings."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats as st
+
+from vlsforest import stats
+from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.metrics import METRIC_COLUMNS
+
+PLUS1 = ("hmean", "height", "cbh")
+SPECIES = ["fagus_sylvatica", "carpinus_betulus", "picea_abies", "picea_abies", "fagus_sylvatica", "picea_abies"]
+
+
+def make_metrics(n_trees=6, methods=("fixed_0.25", "scaled", "plus1"), scenarios=("als", "uls"), seed=0,
+                 offsets=None, noise=0.5):
+    """Reference rows with integer values and simulated rows = reference + offset (+ noise).
+
+    ``offsets`` maps method → {metric: constant}; the method ``plus1`` gets exactly +1 on
+    :data:`PLUS1` and +1 with noise on the other metrics (constant differences on every metric
+    would send SciPy's Wilcoxon test of the small groups into slow permutation tests).
+    """
+    rng = np.random.default_rng(seed)
+    offsets = offsets or {}
+    rows = []
+    for t in range(n_trees):
+        sp = SPECIES[t % len(SPECIES)]
+        for sc in scenarios:
+            ref = {c: float(rng.integers(2, 40)) for c in METRIC_COLUMNS}
+            ref["multi_return_pct"] = 70.0 + t if sp == "picea_abies" else 50.0 + t
+            rows.append(dict(plot=f"P{t % 2 + 1}", tree_id=str(t + 1), species=sp, scenario=sc, method="reference", **ref))
+            for me in methods:
+                vals = {}
+                for c, v in ref.items():
+                    if me == "plus1":
+                        vals[c] = v + 1.0 + (0.0 if c in PLUS1 else rng.normal(0, noise))
+                    else:
+                        vals[c] = v + offsets.get(me, {}).get(c, 0.0) + rng.normal(0, noise)
+                rows.append(dict(plot=f"P{t % 2 + 1}", tree_id=str(t + 1), species=sp, scenario=sc, method=me, **vals))
+    return pd.DataFrame(rows)
+
+
+def voxel_table(methods, counts):
+    return pd.DataFrame([dict(plot=p, method=m, n_voxels=counts[m] * (i + 1))
+                         for i, p in enumerate(("P1", "P2")) for m in methods])
+
+
+def time_table(methods, scenarios=("als", "uls")):
+    return pd.DataFrame([dict(plot=p, method=m, scenario=s, seconds=10.0 * (i + 1) + j)
+                         for i, p in enumerate(("P1", "P2")) for j, m in enumerate(methods) for s in scenarios])
+
+
+# --------------------------------------------------------------------------- errors and summaries
+
+
+def test_errors_constant_offset_and_rel_error():
+    m = make_metrics()
+    e = stats.compute_errors(m)
+    assert list(e.columns) == ["plot", "tree_id", "species", "group", "scenario", "method", "metric", "sim", "ref",
+                               "error", "rel_error"]
+    # 6 trees × 3 methods × 2 scenarios × all metrics
+    assert len(e) == 6 * 3 * 2 * len(METRIC_COLUMNS)
+    p = e[(e["method"] == "plus1") & e["metric"].isin(PLUS1)]
+    np.testing.assert_array_equal(p["error"].to_numpy(), 1.0)
+    np.testing.assert_allclose(p["rel_error"].to_numpy(), 100.0 / p["ref"].to_numpy())
+    assert set(e.loc[e["species"] == "picea_abies", "group"]) == {"conifer"}
+    assert set(e.loc[e["species"] == "carpinus_betulus", "group"]) == {"broadleaf"}
+    # method order: known methods first, then the others alphabetically
+    assert list(dict.fromkeys(e["method"])) == ["fixed_0.25", "scaled", "plus1"]
+
+
+def test_summary_constant_error_and_bootstrap_ci():
+    m = make_metrics(offsets={"scaled": {"height": 2.0}}, noise=0.5)
+    e = stats.compute_errors(m)
+    s = stats.summarize_errors(e, n_boot=2000, seed=3)
+    row = s[(s["species"] == "all") & (s["group"] == "all") & (s["method"] == "plus1") & (s["scenario"] == "als")
+            & (s["metric"] == "height")].iloc[0]
+    assert row["n"] == 6
+    assert row["mean"] == 1.0 and row["median"] == 1.0 and row["mae"] == 1.0 and row["rmse"] == 1.0
+    assert row["sd"] == 0.0
+    assert row["ci_low"] <= 1.0 <= row["ci_high"]
+    # scaled height: mean of the 6 errors, CI close to the t interval of the mean
+    sub = e[(e["method"] == "scaled") & (e["scenario"] == "uls") & (e["metric"] == "height")]["error"].to_numpy()
+    r = s[(s["species"] == "all") & (s["group"] == "all") & (s["method"] == "scaled") & (s["scenario"] == "uls")
+          & (s["metric"] == "height")].iloc[0]
+    assert r["mean"] == pytest.approx(sub.mean(), abs=1e-12)
+    assert r["median"] == pytest.approx(np.median(sub), abs=1e-12)
+    assert r["sd"] == pytest.approx(sub.std(ddof=1), abs=1e-12)
+    assert r["rmse"] == pytest.approx(np.sqrt(np.mean(sub**2)), abs=1e-12)
+    assert r["ci_low"] < r["mean"] < r["ci_high"]
+    se = sub.std(ddof=1) / math.sqrt(len(sub))
+    # percentile bootstrap of n = 6 is narrower than the t interval but of the same order
+    assert 1.0 * se < r["ci_high"] - r["ci_low"] < 2 * 2.571 * se
+    # group rows: broadleaf = fagus + carpinus trees
+    g = s[(s["species"] == "all") & (s["group"] == "broadleaf") & (s["method"] == "plus1") & (s["metric"] == "cbh")]
+    assert set(g["n"]) == {3}
+    assert set(s["species"]) == {"fagus_sylvatica", "carpinus_betulus", "picea_abies", "all"}
+
+
+def test_summary_seed_and_independence_of_blocks():
+    m = make_metrics()
+    e = stats.compute_errors(m)
+    a = stats.summarize_errors(e, n_boot=500, seed=1)
+    b = stats.summarize_errors(e, n_boot=500, seed=1)
+    c = stats.summarize_errors(e, n_boot=500, seed=2)
+    pd.testing.assert_frame_equal(a, b)
+    assert not np.allclose(a["ci_low"].fillna(0), c["ci_low"].fillna(0))
+    # dropping a method leaves the CIs of the other methods unchanged
+    d = stats.summarize_errors(e[e["method"] != "plus1"], n_boot=500, seed=1)
+    keep = a[a["method"] != "plus1"].reset_index(drop=True)
+    pd.testing.assert_frame_equal(keep, d.reset_index(drop=True))
+
+
+def test_summary_bad_arguments():
+    e = stats.compute_errors(make_metrics())
+    with pytest.raises(ConfigError, match="n_boot"):
+        stats.summarize_errors(e, n_boot=10)
+    with pytest.raises(ConfigError, match="ci"):
+        stats.summarize_errors(e, ci=1.5)
+
+
+def test_degenerate_single_tree_and_all_nan_metric():
+    m = make_metrics()
+    # a method with one tree only
+    one = m[(m["method"] == "reference") & (m["tree_id"] == "1")].copy()
+    one["method"] = "lonely"
+    one["height"] = one["height"] + 0.25
+    m = pd.concat([m, one], ignore_index=True)
+    # an all-NaN metric for one method
+    m.loc[m["method"] == "scaled", "cpa"] = np.nan
+    e = stats.compute_errors(m)
+    s = stats.summarize_errors(e, n_boot=200)
+    r = s[(s["species"] == "all") & (s["group"] == "all") & (s["method"] == "lonely") & (s["metric"] == "height")
+          & (s["scenario"] == "als")].iloc[0]
+    assert r["n"] == 1 and r["mean"] == pytest.approx(0.25) and r["mae"] == pytest.approx(0.25)
+    assert math.isnan(r["sd"]) and math.isnan(r["ci_low"]) and math.isnan(r["ci_high"])
+    r = s[(s["species"] == "all") & (s["group"] == "all") & (s["method"] == "scaled") & (s["metric"] == "cpa")].iloc[0]
+    assert r["n"] == 0 and math.isnan(r["mean"]) and math.isnan(r["ci_low"])
+    t = stats.paired_tests(e)
+    r = t[(t["group"] == "all") & (t["method"] == "lonely") & (t["metric"] == "height")].iloc[0]
+    assert r["n"] == 1 and r["mean_diff"] == pytest.approx(0.25) and math.isnan(r["t_p"]) and math.isnan(r["wilcoxon_p"])
+    r = t[(t["group"] == "all") & (t["method"] == "scaled") & (t["metric"] == "cpa")].iloc[0]
+    assert r["n"] == 0 and math.isnan(r["t_statistic"])
+    # constant non-zero difference: t = +inf, p = 0
+    r = t[(t["group"] == "all") & (t["method"] == "plus1") & (t["metric"] == "hmean")].iloc[0]
+    assert r["t_statistic"] == math.inf and r["t_p"] == 0.0
+
+
+def test_missing_reference_gives_nan_error():
+    m = make_metrics()
+    m = m[~((m["method"] == "reference") & (m["tree_id"] == "2") & (m["scenario"] == "uls"))]
+    e = stats.compute_errors(m)
+    sel = e[(e["tree_id"] == "2") & (e["scenario"] == "uls")]
+    assert len(sel) == 3 * len(METRIC_COLUMNS)
+    assert sel["error"].isna().all() and sel["ref"].isna().all()
+    assert e[(e["tree_id"] == "2") & (e["scenario"] == "als")]["error"].notna().all()
+
+
+def test_rel_error_nan_for_zero_reference():
+    m = make_metrics()
+    m.loc[(m["method"] == "reference") & (m["tree_id"] == "1"), "cbh"] = 0.0
+    e = stats.compute_errors(m)
+    sel = e[(e["tree_id"] == "1") & (e["metric"] == "cbh")]
+    assert sel["rel_error"].isna().all() and sel["error"].notna().all()
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_paired_tests_match_scipy():
+    m = make_metrics(offsets={"fixed_0.25": {"hmean": 0.8}}, noise=0.6, seed=5)
+    # a metric with tied differences (goes through the per-column path)
+    m.loc[m["method"] == "scaled", "cbh"] = m.loc[m["method"] == "scaled", "cbh"].round()
+    e = stats.compute_errors(m)
+    t = stats.paired_tests(e)
+    assert set(t["group"]) == {"all", "broadleaf", "conifer"}
+    for me, k in (("fixed_0.25", "hmean"), ("scaled", "cbh"), ("scaled", "p50")):
+        for g in ("all", "conifer"):
+            sub = e[(e["method"] == me) & (e["scenario"] == "als") & (e["metric"] == k)]
+            if g != "all":
+                sub = sub[sub["group"] == g]
+            s, r = sub["sim"].to_numpy(), sub["ref"].to_numpy()
+            row = t[(t["group"] == g) & (t["method"] == me) & (t["scenario"] == "als") & (t["metric"] == k)].iloc[0]
+            ref_t = st.ttest_rel(s, r)
+            assert row["n"] == len(s)
+            assert row["t_statistic"] == pytest.approx(ref_t.statistic, rel=1e-10)
+            assert row["t_p"] == pytest.approx(ref_t.pvalue, rel=1e-10)
+            d = s - r
+            if np.all(np.round(d, 12) == 0):
+                continue
+            ref_w = st.wilcoxon(s, r)
+            assert row["wilcoxon_statistic"] == pytest.approx(ref_w.statistic)
+            assert row["wilcoxon_p"] == pytest.approx(ref_w.pvalue, rel=1e-10)
+
+
+def test_multireturn_ttest_hand_computed():
+    rows = []
+    for tid, (sp, v) in enumerate([("picea_abies", 3.0), ("picea_abies", 5.0), ("picea_abies", 7.0),
+                                   ("fagus_sylvatica", 1.0), ("fagus_sylvatica", 2.0), ("carpinus_betulus", 3.0),
+                                   ("quercus_robur", 99.0)]):
+        base = {c: 1.0 for c in METRIC_COLUMNS}
+        for me in ("reference", "scaled"):
+            rows.append(dict(plot="P1", tree_id=str(tid), species=sp, scenario="als", method=me,
+                             **{**base, "multi_return_pct": v}))
+    r = stats.multireturn_ttest(pd.DataFrame(rows))
+    assert list(r["method"]) == ["reference", "scaled"]
+    row = r.iloc[0]
+    # means 5 and 2; variances 4 and 1; pooled 2.5; se = sqrt(2.5 * 2/3); the "other" oak is left out
+    assert (row["n_conifer"], row["n_broadleaf"], row["df"]) == (3, 3, 4)
+    assert row["mean_conifer"] == 5.0 and row["mean_broadleaf"] == 2.0 and row["diff"] == 3.0
+    assert row["t"] == pytest.approx(3.0 / math.sqrt(2.5 * 2 / 3), rel=1e-12)
+    assert row["p"] == pytest.approx(2 * st.t.sf(row["t"], 4), rel=1e-10)
+
+
+# --------------------------------------------------------------------------- Table 5 and findings
+
+STUDY_METHODS = ("fixed_0.25", "fixed_0.10", "fixed_0.05", "fixed_0.02", "scaled", "scaled_random_shift",
+                 "scaled_cog_shift")
+
+
+def study_like(flip=False):
+    """Data that follow the study (``flip=False``) or contradict it (``flip=True``)."""
+    s = -1.0 if flip else 1.0
+    off = {
+        "fixed_0.25": {"cbh": 3.0 * s, "cpa": -20.0 * s, "multi_return_pct": -30.0 * s, "hmean": 2.0 * s,
+                       "hmin": 1.5 * s, "hsd": -1.0 * s},
+        "fixed_0.10": {"cbh": 2.0 * s, "cpa": -12.0 * s, "multi_return_pct": -15.0 * s, "hmean": 1.0 * s,
+                       "hmin": 1.0 * s, "hsd": -0.5 * s},
+        "fixed_0.05": {"cbh": 1.0, "cpa": -6.0, "multi_return_pct": 0.0},
+        "fixed_0.02": {"cbh": 0.3, "cpa": -2.0, "multi_return_pct": 12.0},
+        "scaled": {"cbh": 0.2, "cpa": -1.0},
+        "scaled_random_shift": {"cbh": 0.2, "cpa": -1.0},
+        "scaled_cog_shift": {"cbh": 0.2, "cpa": -3.0 * s, "multi_return_pct": -3.0 * s},
+    }
+    m = make_metrics(n_trees=12, methods=STUDY_METHODS, offsets=off, noise=0.05, seed=11)
+    m.loc[m["method"] == "reference", "cpa"] += 40.0  # keep CPAs positive and large
+    m.loc[m["method"] != "reference", "cpa"] += 40.0
+    counts = {"fixed_0.25": 1000, "fixed_0.10": 5000, "fixed_0.05": 20000, "fixed_0.02": 120000 if not flip else 20000,
+              "scaled": 1000, "scaled_random_shift": 1000, "scaled_cog_shift": 1000}
+    return m, voxel_table(STUDY_METHODS, counts), time_table(STUDY_METHODS)
+
+
+def _findings(m, vc, tt):
+    e = stats.compute_errors(m)
+    t = stats.paired_tests(e)
+    mr = stats.multireturn_ttest(m)
+    t5 = stats.table5(e, vc, tt)
+    return {f["id"]: f for f in stats.evaluate_findings(e, t, mr, t5, vc)}, t5
+
+
+def test_table5_numbers():
+    m, vc, tt = study_like()
+    _, t5 = _findings(m, vc, tt)
+    assert list(t5["method"]) == list(STUDY_METHODS)
+    r = t5.set_index("method")
+    assert r.loc["fixed_0.02", "n_voxels"] == 120000 * 3
+    assert r.loc["fixed_0.02", "voxel_ratio"] == pytest.approx(120.0)
+    assert r.loc["scaled", "voxel_ratio"] == pytest.approx(1.0)
+    assert r.loc["fixed_0.25", "seconds_als"] == pytest.approx(10.0 + 20.0)
+    assert r.loc["fixed_0.10", "seconds_total"] == pytest.approx(2 * (11.0 + 21.0))
+    assert r.loc["fixed_0.25", "mr_bias_pp"] == pytest.approx(-30.0, abs=0.1)
+    assert r.loc["fixed_0.25", "penetration"] == "underestimated"
+    assert r.loc["fixed_0.02", "penetration"] == "overestimated"
+    assert r.loc["scaled", "penetration"] == "realistic"
+    assert r.loc["fixed_0.25", "cbh_mae_m"] == pytest.approx(3.0, abs=0.1)
+
+
+def test_findings_agree_then_flip_to_disagree():
+    m, vc, tt = study_like(flip=False)
+    f, _ = _findings(m, vc, tt)
+    for k in ("F1", "F2", "F3", "F4", "F5", "F7", "T5:fixed_0.25", "T5:fixed_0.02", "T5:scaled"):
+        assert f[k]["verdict"] == "agrees", (k, f[k])
+    # F3b: fixed voxels keep the conifer/broadleaf difference here (offsets are group-blind)
+    assert f["F3b"]["verdict"] == "disagrees"
+    m, vc, tt = study_like(flip=True)
+    f, _ = _findings(m, vc, tt)
+    for k in ("F1", "F2", "F4", "F5", "T5:fixed_0.25"):
+        assert f[k]["verdict"] == "disagrees", (k, f[k])
+    text = stats.findings_markdown(list(f.values()))
+    assert "**F1** 0.25 m fixed voxels overestimate CBH and underestimate CPA. — **disagrees**" in text
+
+
+def test_findings_not_testable_without_methods():
+    m = make_metrics(methods=("plus1",))
+    vc = voxel_table(("plus1",), {"plus1": 10})
+    f, _ = _findings(m, vc, time_table(("plus1",)))
+    assert f["F1"]["verdict"] == "not testable"
+    assert f["T5:scaled"]["verdict"] == "not testable"
+    assert f["F3"]["verdict"] == "not testable"
+
+
+def test_f3_conifer_difference_flips():
+    m, vc, tt = study_like()
+    f, _ = _findings(m, vc, tt)
+    assert f["F3"]["verdict"] == "agrees"
+    # no conifer/broadleaf difference in the references: F3 disagrees
+    m = m.copy()
+    m["multi_return_pct"] = 60.0 + np.random.default_rng(0).normal(0, 3, len(m))
+    f, _ = _findings(m, vc, tt)
+    assert f["F3"]["verdict"] == "disagrees"
+
+
+# --------------------------------------------------------------------------- files and CLI
+
+
+def _write_inputs(tmp_path, m=None, vc=None, tt=None):
+    if m is None:
+        m, vc, tt = study_like()
+    paths = (tmp_path / "tree_metrics.csv", tmp_path / "voxel_counts.csv", tmp_path / "sim_times.csv")
+    m.to_csv(paths[0], index=False)
+    vc.to_csv(paths[1], index=False)
+    tt.to_csv(paths[2], index=False)
+    return paths
+
+
+def test_cli_writes_files_byte_identical(tmp_path):
+    from vlsforest.cli import main
+
+    mp, vp, sp = _write_inputs(tmp_path)
+    for out in ("a", "b"):
+        rc = main(["stats", "--metrics", str(mp), "--voxel-counts", str(vp), "--sim-times", str(sp),
+                   "-o", str(tmp_path / out), "--n-boot", "300", "--seed", "4"])
+        assert rc == 0
+    names = ["errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md"]
+    for n in names:
+        a, b = (tmp_path / "a" / n).read_bytes(), (tmp_path / "b" / n).read_bytes()
+        assert a and a == b, n
+    t5 = pd.read_csv(tmp_path / "a" / "table5.csv")
+    assert t5.loc[t5["method"] == "fixed_0.02", "voxel_ratio"].iloc[0] == pytest.approx(120.0)
+    assert "agree" in (tmp_path / "a" / "findings.md").read_text()
+
+
+def test_missing_column_names_the_file(tmp_path, capsys):
+    from vlsforest.cli import main
+
+    m, vc, tt = study_like()
+    mp, vp, sp = _write_inputs(tmp_path, m.drop(columns=["cbh"]), vc, tt)
+    with pytest.raises(InputDataError, match=r"tree_metrics\.csv.*cbh"):
+        stats.load_metrics(mp)
+    rc = main(["stats", "--metrics", str(mp), "--voxel-counts", str(vp), "--sim-times", str(sp), "-o", str(tmp_path / "o")])
+    assert rc == 2
+    assert "tree_metrics.csv" in capsys.readouterr().err
+    vc.drop(columns=["n_voxels"]).to_csv(vp, index=False)
+    with pytest.raises(InputDataError, match=r"voxel_counts\.csv.*n_voxels"):
+        stats.load_voxel_counts(vp)
+    sp.write_text("")
+    with pytest.raises(InputDataError, match=r"sim_times\.csv.*empty"):
+        stats.load_sim_times(sp)
+    with pytest.raises(InputDataError, match="no such file"):
+        stats.load_sim_times(tmp_path / "nope.csv")
+    with pytest.raises(ConfigError, match="--n-boot"):
+        from vlsforest.commands.stats import run
+        import argparse
+        run(argparse.Namespace(n_boot=5, seed=0))
+
+
+def test_bad_tables(tmp_path):
+    m = make_metrics()
+    bad = m.copy()
+    bad["cbh"] = bad["cbh"].astype(object)
+    bad.loc[0, "cbh"] = "abc"
+    with pytest.raises(InputDataError, match="cbh"):
+        stats.compute_errors(bad, source="x.csv")
+    with pytest.raises(InputDataError, match="duplicate"):
+        stats.compute_errors(pd.concat([m, m.iloc[:1]]))
+    with pytest.raises(InputDataError, match="reference"):
+        stats.compute_errors(m[m["method"] != "reference"])
+    two = m.copy()
+    two.loc[two.index[0], "species"] = "picea_abies" if two.loc[two.index[0], "species"] != "picea_abies" else "fagus_sylvatica"
+    with pytest.raises(InputDataError, match="species"):
+        stats.compute_errors(two)
+
+
+def test_method_order_never_hard_codes():
+    assert stats.method_order(["zzz", "scaled", "reference", "aaa", "fixed_0.02", "fixed_0.25"]) == [
+        "fixed_0.25", "fixed_0.02", "scaled", "aaa", "zzz"]
+    assert stats.species_group("abies_alba") == "other"

@@ -1,0 +1,339 @@
+"""Voxel models (fixed and PAD-scaled cubes, shifts), scene assembly, HELIOS++ export, reference
+extraction and trajectory re-flights."""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.extract import extract_reference, extract_simulated, match_targets
+from vlsforest.io.las import PointCloud
+from vlsforest.io.mesh import TriangleMesh, write_mesh
+from vlsforest.io.vox import read_vox
+from vlsforest.scene import assemble_scene, export_helios, object_ids
+from vlsforest.voxels import (
+    ModelInputs,
+    PadGrid,
+    VoxelModel,
+    build_model,
+    cell_centroids,
+    fixed_voxels,
+    scaled_cubes,
+    shift_cubes,
+)
+
+
+def _crown(n=4000, seed=0, centre=(3.0, -2.0, 10.0), r=1.5):
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return np.asarray(centre) + v * r * rng.uniform(0.3, 1.0, size=(n, 1)) ** (1 / 3)
+
+
+# --------------------------------------------------------------------------------------------
+# fixed voxels
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("size", [0.25, 0.10, 0.05, 0.02])
+def test_fixed_voxels_global_lattice_and_counts(size):
+    xyz = _crown(3000)
+    m = fixed_voxels(xyz, size)
+    # brute force: the set of cells holding points
+    cells = {tuple(c) for c in np.floor(xyz / size).astype(int)}
+    assert m.n_voxels == len(cells)
+    assert {tuple(c) for c in m.ijk} == cells
+    # every point lies inside a cube of the model, cube corners on multiples of the size
+    lo = m.centres() - 0.5 * m.sides()[:, None]
+    assert np.allclose(lo / size, np.round(lo / size), atol=1e-9)
+    # cells are sorted and unique
+    assert len(np.unique(m.ijk, axis=0)) == m.n_voxels
+
+
+def test_fixed_voxels_min_points_and_owner_majority():
+    size = 1.0
+    pts = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3],  # cell 0: owners 7, 7, 3
+                    [1.5, 0.5, 0.5], [1.6, 0.5, 0.5],                    # cell 1: owners 4, 2 (tie → 2)
+                    [5.5, 0.5, 0.5]])                                    # cell 5: one point
+    owner = np.array([7, 7, 3, 4, 2, 9])
+    m = fixed_voxels(pts, size, owner)
+    assert m.ijk.tolist() == [[0, 0, 0], [1, 0, 0], [5, 0, 0]]
+    assert m.owner.tolist() == [7, 2, 9]
+    m2 = fixed_voxels(pts, size, owner, min_points=2)
+    assert m2.ijk.tolist() == [[0, 0, 0], [1, 0, 0]]
+    with pytest.raises(ConfigError):
+        fixed_voxels(pts, 0.0)
+    with pytest.raises(ConfigError):
+        fixed_voxels(pts, -0.1)
+    with pytest.raises(InputDataError):
+        fixed_voxels(np.zeros((0, 3)), 0.25)
+    with pytest.raises(InputDataError):
+        fixed_voxels(np.array([[np.nan, 0, 0]]), 0.25)
+
+
+def test_voxel_counts_grow_with_resolution():
+    xyz = _crown(60000, r=2.0)
+    n = {s: fixed_voxels(xyz, s).n_voxels for s in (0.25, 0.10, 0.05, 0.02)}
+    assert n[0.25] < n[0.10] < n[0.05] < n[0.02] <= len(xyz)
+    # a crown ball of radius 2 m holds ≈ (4/3)π 2³ / 0.25³ ≈ 2,145 cells of 0.25 m (all filled)
+    assert abs(n[0.25] - 4 / 3 * math.pi * 8 / 0.25 ** 3) < 0.15 * n[0.25]
+
+
+# --------------------------------------------------------------------------------------------
+# scaled cubes and shifts (property tests)
+# --------------------------------------------------------------------------------------------
+def test_scaled_cube_side_law():
+    pad = np.array([0.0, 1.25, 5.0, 7.0, np.nan, -1.0])
+    half = scaled_cubes(np.zeros((6, 3)), pad, 5.0, a0=0.25, alpha=0.5)
+    side = 2 * half
+    # face area ∝ PAD/PADmax (α = 0.5), clipped to [0, PADmax], NaN → no cube
+    assert side[0] == 0 and side[4] == 0 and side[5] == 0
+    assert math.isclose(side[1] ** 2, 0.25 ** 2 * 1.25 / 5.0, rel_tol=1e-12)
+    assert math.isclose(side[2], 0.25) and math.isclose(side[3], 0.25)
+    half1 = scaled_cubes(np.zeros((1, 3)), [2.0], 8.0, a0=0.25, alpha=1.0)
+    assert math.isclose(2 * half1[0], 0.25 * 2.0 / 8.0)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_scaled_sides_never_exceed_a0_and_shifted_cubes_stay_in_their_cell(seed):
+    rng = np.random.default_rng(seed)
+    n, a0 = 2000, 0.25
+    ijk = rng.integers(-400, 400, size=(n, 3))
+    pad = rng.uniform(-2, 12, n)
+    pad_max = rng.choice([5.0, 8.0], n)
+    half = scaled_cubes(ijk, pad, pad_max, a0, 0.5)
+    assert (2 * half <= a0 + 1e-15).all()
+    cog = (ijk + rng.uniform(-0.5, 1.5, size=(n, 3))) * a0  # centroids also outside the cell
+    for mode in ("none", "random", "cog"):
+        c = shift_cubes(ijk, half, a0, mode, seed, cog)
+        lo, hi = c - half[:, None], c + half[:, None]
+        assert (lo >= ijk * a0 - 1e-12).all(), mode
+        assert (hi <= (ijk + 1) * a0 + 1e-12).all(), mode
+    # random shift: seeded and uses the room (not all cubes centred)
+    c1 = shift_cubes(ijk, half, a0, "random", 7)
+    assert np.array_equal(c1, shift_cubes(ijk, half, a0, "random", 7))
+    room = 0.5 * a0 - half
+    assert np.abs(c1 - (ijk + 0.5) * a0)[room > 0.01].max() > 0.5 * room.max()
+
+
+def test_cog_shift_reaches_centroid_when_room_allows():
+    a0 = 0.25
+    ijk = np.array([[0, 0, 0], [1, 0, 0]])
+    half = np.array([0.025, 0.1])
+    cog = np.array([[0.05, 0.2, 0.125], [0.40, 0.125, 0.125]])
+    c = shift_cubes(ijk, half, a0, "cog", cog=cog)
+    # cube 0 (side 0.05): centroid reachable on every axis? x: 0.05 ≥ 0.025 ok; y: 0.2 ≤ 0.225 ok
+    assert np.allclose(c[0], cog[0])
+    # cube 1 (side 0.2): room 0.025 around the cell centre (0.375): clamped to 0.4 exactly reachable
+    assert np.allclose(c[1], [0.4, 0.125, 0.125])
+    # a centroid far outside is clamped to the cell wall
+    c2 = shift_cubes(ijk[:1], np.array([0.1]), a0, "cog", cog=np.array([[9.0, -9.0, 0.125]]))
+    assert np.allclose(c2, [[0.15, 0.1, 0.125]])
+
+
+def test_cell_centroids_brute_force():
+    xyz = _crown(500, seed=3)
+    m = fixed_voxels(xyz, 0.5)
+    cog = cell_centroids(xyz, 0.5, m.ijk)
+    for k in (0, len(m.ijk) // 2, len(m.ijk) - 1):
+        inside = np.all(np.floor(xyz / 0.5).astype(int) == m.ijk[k], axis=1)
+        assert np.allclose(cog[k], xyz[inside].mean(axis=0))
+    assert np.isnan(cell_centroids(xyz, 0.5, np.array([[999, 999, 999]]))).all()
+
+
+def _pad_grid(xyz, a0=0.25, seed=0, t_range=(0.2, 0.95)):
+    occ = fixed_voxels(xyz, a0)
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(*t_range, occ.n_voxels)
+    sampled = rng.uniform(size=occ.n_voxels) > 0.1
+    return PadGrid(a0, occ.ijk, t, np.zeros(occ.n_voxels), sampled)
+
+
+def test_scaled_model_pad_from_transmittance_and_species():
+    pytest.importorskip("vlsforest.pad", reason="PAD module")
+    from vlsforest.pad import g_function
+
+    xyz = _crown(3000)
+    owner = np.where(xyz[:, 0] > 3.0, 1, 2)
+    grid = _pad_grid(xyz)
+    inputs = ModelInputs(xyz, owner, {1: "broadleaf", 2: "conifer"}, grid)
+    m = build_model({"kind": "scaled", "a0": 0.25, "alpha": 0.5, "shift": "none", "flagged": "drop"}, inputs)
+    # PAD = −ln(T)/G(0°) with planophile (tree 1, PADmax 5) or erectophile (tree 2, PADmax 8)
+    pos = {tuple(c): i for i, c in enumerate(grid.ijk)}
+    for k in range(0, m.n_voxels, max(1, m.n_voxels // 50)):
+        i = pos[tuple(m.ijk[k])]
+        lad, pmax = ("planophile", 5.0) if m.owner[k] == 1 else ("erectophile", 8.0)
+        pad = min(-math.log(grid.transmittance[i]) / float(g_function(np.array([0.0]), lad)[0]), pmax)
+        assert math.isclose(m.pad[k], pad, rel_tol=1e-9)
+        assert math.isclose(2 * m.half[k], 0.25 * math.sqrt(pad / pmax), rel_tol=1e-9)
+    assert math.isclose(float(g_function(np.array([0.0]), "planophile")[0]), 8 / (3 * math.pi), rel_tol=1e-3)
+    # flagged cells dropped: no cube in an unsampled cell
+    unsampled = {tuple(c) for c in grid.ijk[~grid.sampled]}
+    assert not unsampled & {tuple(c) for c in m.ijk}
+    # flagged: median keeps them with the tree's median PAD
+    m2 = build_model({"kind": "scaled", "flagged": "median"}, inputs)
+    assert m2.n_voxels > m.n_voxels
+    # fewer voxels than the 0.02 m model of the same points
+    assert m.n_voxels < fixed_voxels(xyz, 0.02).n_voxels
+
+
+def test_build_model_errors():
+    xyz = _crown(200)
+    inputs = ModelInputs(xyz, np.ones(len(xyz), int), {})
+    with pytest.raises(ConfigError, match="unknown kind"):
+        build_model({"kind": "nope"}, inputs, "m1")
+    with pytest.raises(ConfigError, match="needs a 'kind'"):
+        build_model({"voxel_size": 0.1}, inputs, "m1")
+    with pytest.raises(ConfigError, match="methods.m1"):
+        build_model({"kind": "fixed", "voxel_size": 0.1, "bogus": 1}, inputs, "m1")
+    with pytest.raises(ConfigError, match="voxel size must be > 0"):
+        build_model({"kind": "fixed", "voxel_size": 0.0}, inputs)
+    with pytest.raises(ConfigError, match="PAD grid"):
+        build_model({"kind": "scaled"}, inputs)
+
+
+def test_voxel_model_roundtrip_bytes(tmp_path):
+    xyz = _crown(1000)
+    m = fixed_voxels(xyz, 0.1, np.arange(len(xyz)) % 3)
+    a, b = m.save(tmp_path / "a.npz"), tmp_path / "b.npz"
+    m2 = VoxelModel.load(a)
+    m2.save(b)
+    assert a.read_bytes() == b.read_bytes()
+    assert np.array_equal(m2.ijk, m.ijk) and np.array_equal(m2.owner, m.owner)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputDataError, match="bad.npz"):
+        VoxelModel.load(tmp_path / "bad.npz")
+
+
+# --------------------------------------------------------------------------------------------
+# scenes: assembly, simulation, HELIOS++ export
+# --------------------------------------------------------------------------------------------
+def _stem(path, x, y, z0, r=0.2, h=6.0):
+    a = np.linspace(0, 2 * np.pi, 17)[:-1]
+    ring = np.column_stack([x + r * np.cos(a), y + r * np.sin(a)])
+    v = np.vstack([np.column_stack([ring, np.full(16, z0)]), np.column_stack([ring, np.full(16, z0 + h)])])
+    f = []
+    for i in range(16):
+        j = (i + 1) % 16
+        f += [[i, j, 16 + j], [i, 16 + j, 16 + i]]
+    write_mesh(path, TriangleMesh(v, np.array(f)))
+    return path
+
+
+def test_assembled_scene_simulates_with_object_ids(tmp_path):
+    from vlsforest.sim import Scene, simulate
+    from vlsforest.sim.survey import survey_from_dict
+
+    xyz1 = _crown(3000, centre=(0.0, 0.0, 10.0))
+    xyz2 = _crown(3000, centre=(6.0, 0.0, 9.0), seed=1)
+    xyz = np.vstack([xyz1, xyz2])
+    owner = np.r_[np.full(len(xyz1), 5), np.full(len(xyz2), 8)]
+    stems = {5: _stem(tmp_path / "s5.obj", 0.0, 0.0, 0.0)}
+    for kind in ({"kind": "fixed", "voxel_size": 0.1},
+                 {"kind": "scaled", "shift": "cog"}):
+        inputs = ModelInputs(xyz, owner, {5: "broadleaf"}, _pad_grid(xyz, seed=2, t_range=(0.05, 0.3)))
+        model = build_model(kind, inputs)
+        out = assemble_scene(tmp_path / kind["kind"] / "scene.yaml", model, [5], stems, 0.0, [-10, -10, 15, 10])
+        doc = yaml.safe_load(out.read_text())
+        ids = {p["id"] for p in doc["parts"]}
+        assert ids == {1, 2} | set(object_ids(5))
+        scene = Scene.from_yaml(out)
+        assert scene.n_voxels == model.n_voxels
+        survey = survey_from_dict({"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 1},
+                                   "platform": {"type": "linear", "speed_mps": 5.0,
+                                                "legs": [{"start": [-20, 0, 60], "end": [25, 0, 60]}]}})
+        res = simulate(scene, survey, seed=1, workers=1, progress=False)
+        oid = res.points["object_id"]
+        assert {1, 2, object_ids(5)[1]} <= set(np.unique(oid).tolist())
+        # target crown returns lie inside the target's voxel cubes (axis positions, small noise)
+        pts = res.points["xyz"][oid == object_ids(5)[1]]
+        assert np.hypot(pts[:, 0], pts[:, 1]).max() < 1.5 + 0.3
+        # HELIOS++ export: XML parses, every part file exists, voxel files place cubes as we do
+        xml = export_helios(out, tmp_path / kind["kind"] / "helios")
+        root = ET.parse(xml).getroot()
+        parts = root.findall("./scene/part")
+        assert {int(p.get("id")) for p in parts} == ids
+        for p in parts:
+            f = p.find("./filter/param[@key='filepath']").get("value")
+            assert (xml.parent / f).is_file()
+        crown_id = object_ids(5)[1]
+        if kind["kind"] == "fixed":
+            vox = read_vox(xml.parent / f"part_{crown_id}.vox")
+            sub = model.subset(model.owner == 5)
+            assert np.allclose(np.sort(vox.centres(), axis=0), np.sort(sub.centres(), axis=0))
+
+
+def test_assemble_scene_errors(tmp_path):
+    model = fixed_voxels(_crown(100), 0.25, np.full(100, 5))
+    with pytest.raises(InputDataError, match="no stem mesh"):
+        assemble_scene(tmp_path / "s.yaml", model, [5], {}, 0.0, [0, 0, 1, 1])
+    with pytest.raises(InputDataError, match="extent"):
+        assemble_scene(tmp_path / "s.yaml", model, [], {}, 0.0, [0, 0, 0, 1])
+    with pytest.raises(ConfigError, match="reflectance"):
+        assemble_scene(tmp_path / "s.yaml", model, [], {}, 0.0, [0, 0, 1, 1], {"leaves": 0.3})
+
+
+# --------------------------------------------------------------------------------------------
+# targets and reference extraction
+# --------------------------------------------------------------------------------------------
+def test_match_targets():
+    trees = pd.DataFrame({"tree_id": [1, 2, 3], "x": [0.0, 5.0, 10.0], "y": [0.0, 0.0, 0.2],
+                          "z": [100.0, 101.0, 102.0], "dbh": [0.3, 0.4, 0.5], "height": [20, 25, 30]})
+    t = match_targets(trees, [{"tree_id": 77, "x": 9.8, "y": 0.0, "species": "picea_abies"},
+                              {"tree_id": 78, "x": 0.3, "y": -0.2, "species": "fagus_sylvatica"}])
+    assert t.tree_id.tolist() == [3, 1] and t.target_id.tolist() == [77, 78]
+    assert t.group.tolist() == ["conifer", "broadleaf"] and t.z.tolist() == [102.0, 100.0]
+    with pytest.raises(InputDataError, match="no segmented stem within"):
+        match_targets(trees, [{"x": 2.5, "y": 0.0, "species": "picea_abies"}])
+    with pytest.raises(InputDataError, match="both match"):
+        match_targets(trees, [{"x": 0.1, "y": 0, "species": "picea_abies"}, {"x": -0.1, "y": 0, "species": "picea_abies"}])
+    with pytest.raises(ConfigError, match="unknown species"):
+        match_targets(trees, [{"x": 0.1, "y": 0, "species": "baobab"}])
+
+
+def test_extract_reference_radius_and_nearest_tree():
+    t1 = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 11.0]])
+    t2 = np.array([[1.0, 0.0, 10.0]])
+    pts = np.array([[0.2, 0.0, 10.0],    # near t1 (0.2) and t2 (0.8) → 1
+                    [0.6, 0.0, 10.0],    # t1 0.6 / t2 0.4 → 2 (radius 0.5)
+                    [0.0, 0.45, 11.0],   # t1 0.45 → 1
+                    [0.0, 0.0, 12.0],    # t1 1.0 → none
+                    [5.0, 5.0, 5.0]])
+    cloud = PointCloud(pts, {"return_number": np.ones(5, np.uint8)})
+    assert extract_reference({1: t1, 2: t2}, cloud, 0.5).tolist() == [1, 2, 1, 0, 0]
+    assert extract_reference({1: t1, 2: t2}, cloud, 0.3).tolist() == [1, 0, 0, 0, 0]
+    with pytest.raises(ConfigError):
+        extract_reference({1: t1}, cloud, 0.0)
+    with pytest.raises(InputDataError):
+        extract_reference({1: np.zeros((0, 3))}, cloud, 0.5)
+    sim = PointCloud(pts, {"object_id": np.array([51, 52, 2, 1, 81], np.int32)})
+    assert extract_simulated(sim, {51: 5, 52: 5, 81: 8}).tolist() == [5, 5, 0, 0, 8]
+
+
+# --------------------------------------------------------------------------------------------
+# re-flying a recorded trajectory
+# --------------------------------------------------------------------------------------------
+def test_survey_from_trajectory():
+    from vlsforest.sim.planning import survey_from_trajectory
+    from vlsforest.sim.survey import survey_from_dict
+
+    t = np.arange(0, 10.01, 0.1)
+    rows = []
+    for sid, (y0, dy) in enumerate([(0.0, 1.0), (30.0, -1.0)], start=1):
+        for k, tt in enumerate(t):
+            rows.append({"gps_time": tt + 20 * sid, "x": 5.0 * tt, "y": y0, "z": 70.0 + 0.0 * dy, "source_id": sid})
+    traj = pd.DataFrame(rows)
+    s = survey_from_trajectory({"scanner": "riegl_minivux1uav", "pattern": "trajectory",
+                                "extraction_radius_m": 0.3, "overrides": {"window_size_ns": 1.5}}, traj)
+    legs = s["platform"]["legs"]
+    assert [lg["active"] for lg in legs] == [True, False, True]
+    assert legs[0]["start"] == [0.0, 0.0, 70.0] and legs[0]["end"] == [50.0, 0.0, 70.0]
+    assert math.isclose(s["platform"]["speed_mps"], 5.0)
+    assert s["overrides"] == {"window_size_ns": 1.5}
+    survey_from_dict(s)
+    with pytest.raises(InputDataError, match="columns"):
+        survey_from_trajectory({"scanner": "riegl_vq780i"}, traj.drop(columns="source_id"))

@@ -1,0 +1,25 @@
+# Reference tree clouds: the real ALS/ULS points within the scenario's radius of each target's
+# TLS points (the study: 0.5 m ALS, 0.3 m ULS), all returns kept.
+
+
+rule extract_reference:
+    input:
+        unpack(plot_files),
+        segment="results/{plot}/segment",
+        targets="results/{plot}/targets.csv",
+    output:
+        "results/{plot}/reference/{scenario}/trees.laz",
+    log:
+        "logs/extract/{plot}_reference_{scenario}.log",
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        recording=scenario_recording,
+        radius=scenario_radius,
+        library=EXTRACT_HASH,
+    shell:
+        "python -m vlsforest.cli extract reference {params.recording} --segment {input.segment} "
+        "--targets {input.targets} --radius {params.radius} -o {output} > {log} 2>&1"

@@ -1,0 +1,103 @@
+"""``vlsforest collect``: gather per-plot workflow outputs into the summary tables.
+
+``collect metrics results/{plot}/{source}/{scenario}/metrics.csv … -o tree_metrics.csv``
+    one long table ``plot, tree_id, species, scenario, method, <metrics>`` (``method`` is
+    ``reference`` for the real recordings); species from ``results/{plot}/targets.csv``.
+``collect voxels results/{plot}/{method}/voxels.npz … -o voxel_counts.csv``
+    ``plot, method, n_voxels``.
+``collect times results/{plot}/{method}/{scenario}/timing.json … -o sim_times.csv``
+    ``plot, method, scenario, seconds, n_pulses, n_points``.
+``collect pad results/{plot}/pad/validation.csv … -o pad_validation.csv [--figure F.png]``
+    the PAD validation tables of all plots (and their figure).
+
+The plot, method and scenario are read from the paths (the workflow's results layout).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``collect`` sub-command."""
+    p = subparsers.add_parser("collect", help="gather per-plot outputs into summary tables",
+                              description="Gather per-plot workflow outputs into the summary tables.")
+    p.add_argument("what", choices=("metrics", "voxels", "times", "pad"))
+    p.add_argument("inputs", nargs="+", type=Path)
+    p.add_argument("-o", "--output", required=True, type=Path)
+    p.add_argument("--figure", type=Path, default=None, help="pad: also draw the validation figure")
+    p.set_defaults(func=run)
+    return p
+
+
+def _parts(path: Path, depth: int, what: str):
+    from vlsforest.errors import InputDataError
+
+    parts = path.parts
+    if len(parts) < depth + 1:
+        raise InputDataError(f"{path}: expected results/{{plot}}/…/{path.name} ({what})")
+    return parts[-depth - 1:-1]
+
+
+def run(args) -> int:
+    """Execute ``vlsforest collect``."""
+    import pandas as pd
+
+    from vlsforest.errors import InputDataError
+
+    rows = []
+    if args.what == "metrics":
+        frames, species = [], {}
+        for f in args.inputs:
+            plot, source, scenario = _parts(f, 3, "metrics")
+            if plot not in species:
+                tpath = f.parents[2] / "targets.csv"
+                if not tpath.is_file():
+                    raise InputDataError(f"{tpath}: targets table of plot {plot} is missing")
+                t = pd.read_csv(tpath)
+                species[plot] = dict(zip(t.target_id.astype(int), t.species.astype(str)))
+            df = pd.read_csv(f)
+            if "tree_id" not in df.columns:
+                raise InputDataError(f"{f}: no tree_id column")
+            df.insert(0, "method", source)
+            df.insert(0, "scenario", scenario)
+            df.insert(0, "species", [species[plot].get(int(i), "unknown") for i in df.tree_id])
+            df.insert(0, "plot", plot)
+            cols = ["plot", "tree_id", "species", "scenario", "method"]
+            frames.append(df[cols + [c for c in df.columns if c not in cols]])
+        out = pd.concat(frames, ignore_index=True)
+        out = out.sort_values(["plot", "tree_id", "scenario", "method"], kind="stable")
+    elif args.what == "voxels":
+        from vlsforest.voxels import VoxelModel
+
+        for f in args.inputs:
+            plot, method = _parts(f, 2, "voxel model")
+            rows.append({"plot": plot, "method": method, "n_voxels": VoxelModel.load(f).n_voxels})
+        out = pd.DataFrame(rows).sort_values(["plot", "method"], kind="stable")
+    elif args.what == "pad":
+        from vlsforest.pad.validate import plot_validation
+
+        frames = []
+        for f in args.inputs:
+            if not f.is_file():
+                raise InputDataError(f"{f}: no such PAD validation table")
+            frames.append(pd.read_csv(f))
+        out = pd.concat(frames, ignore_index=True)
+        if args.figure is not None:
+            plot_validation(out, args.figure)
+    else:
+        for f in args.inputs:
+            plot, method, scenario = _parts(f, 3, "timing")
+            try:
+                t = json.loads(f.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise InputDataError(f"{f}: not a timing JSON ({exc})") from None
+            rows.append({"plot": plot, "method": method, "scenario": scenario, "seconds": float(t["total"]),
+                         "n_pulses": int(t.get("n_pulses", 0)), "n_points": int(t.get("n_points", 0))})
+        out = pd.DataFrame(rows).sort_values(["plot", "method", "scenario"], kind="stable")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    out.to_csv(args.output, index=False, float_format="%.6f", na_rep="NaN", lineterminator="\n")
+    print(f"collect {args.what}: {len(out)} rows -> {args.output}")
+    return 0

@@ -1,0 +1,153 @@
+"""``vlsforest scene``: plot scenes for the simulator, per plot × method.
+
+Sub-commands (the workflow runs them in this order):
+
+``targets SEGMENT_DIR --plot-json plot.json -o targets.csv``
+    pair the field list of target trees (``plot.json``: ``targets`` with x, y, species, tree_id)
+    with the segmented trees; also writes ``site.json`` beside it (ground elevation = median of
+    the TLS ground points, extent = the TLS points' horizontal bounding box).
+``crowns SEGMENT_DIR --stems STEMS_DIR --targets targets.csv -o crowns.npz``
+    the TLS points that voxel models are built from (tree points minus ground and the targets'
+    meshed stem points) with their tree ids.
+``build --voxels voxels.npz --targets targets.csv --site site.json --stems STEMS_DIR -o DIR/scene.yaml``
+    the SCENE.yaml (ground plane, stem meshes, voxel crowns; see :mod:`vlsforest.scene`).
+``helios SCENE.yaml -o DIR``
+    the same scene as HELIOS++ scene XML with OBJ / ``.vox`` parts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``scene`` sub-command."""
+    p = subparsers.add_parser("scene", help="plot scenes per method (targets, crown points, SCENE.yaml, HELIOS++ XML)",
+                              description="Build the simulation scene of a plot for one voxel method.")
+    sub = p.add_subparsers(dest="what", metavar="{targets,crowns,build,helios}")
+    sub.required = True
+    t = sub.add_parser("targets", help="match field targets to segmented trees; ground and extent")
+    t.add_argument("segment", type=Path, help="segmentation folder (trees.csv, segmented.laz)")
+    t.add_argument("--plot-json", required=True, type=Path, help="plot description with 'targets'")
+    t.add_argument("--max-dist", type=float, default=1.0, help="largest stem-position mismatch (m)")
+    t.add_argument("-o", "--output", required=True, type=Path, help="targets.csv (site.json beside it)")
+    c = sub.add_parser("crowns", help="TLS points to voxelise, with tree ids")
+    c.add_argument("segment", type=Path)
+    c.add_argument("--stems", required=True, type=Path, help="stems folder ({tree_id}/stem_points.laz)")
+    c.add_argument("--targets", required=True, type=Path)
+    c.add_argument("-o", "--output", required=True, type=Path, help="crowns.npz")
+    b = sub.add_parser("build", help="write SCENE.yaml for a voxel model")
+    b.add_argument("--voxels", required=True, type=Path, help="voxel model .npz (vlsforest voxels)")
+    b.add_argument("--targets", required=True, type=Path)
+    b.add_argument("--site", required=True, type=Path, help="site.json (ground_z, extent)")
+    b.add_argument("--stems", required=True, type=Path, help="stems folder ({tree_id}/stem.obj)")
+    b.add_argument("--reflectance-json", default=None, help='e.g. {"foliage": 0.45, "wood": 0.35, "ground": 0.3}')
+    b.add_argument("--method", default="", help="method name (recorded in the scene)")
+    b.add_argument("--helios", type=Path, default=None, help="also export HELIOS++ scene XML into this folder")
+    b.add_argument("-o", "--output", required=True, type=Path, help="SCENE.yaml")
+    h = sub.add_parser("helios", help="export a SCENE.yaml as HELIOS++ scene XML")
+    h.add_argument("scene", type=Path)
+    h.add_argument("-o", "--output", required=True, type=Path, help="output folder")
+    p.set_defaults(func=run)
+    return p
+
+
+def _read_csv(path: Path, cols, what):
+    import pandas as pd
+
+    from vlsforest.errors import InputDataError
+
+    if not path.is_file():
+        raise InputDataError(f"{path}: no such {what}")
+    try:
+        df = pd.read_csv(path)
+    except Exception as exc:
+        raise InputDataError(f"{path}: not a readable CSV ({exc})") from None
+    missing = set(cols) - set(df.columns)
+    if missing:
+        raise InputDataError(f"{path}: {what} lacks column(s) {sorted(missing)}")
+    return df
+
+
+def _json(path: Path, what):
+    from vlsforest.errors import InputDataError
+
+    if not path.is_file():
+        raise InputDataError(f"{path}: no such {what}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputDataError(f"{path}: not valid JSON ({exc})") from None
+
+
+def run(args) -> int:
+    """Execute ``vlsforest scene``."""
+    import numpy as np
+
+    from vlsforest.errors import ConfigError, InputDataError
+    from vlsforest.io.las import read_las
+
+    if args.what == "targets":
+        from vlsforest.extract import match_targets
+
+        trees = _read_csv(args.segment / "trees.csv", ("tree_id", "x", "y", "z"), "tree table")
+        info = _json(args.plot_json, "plot description")
+        if not isinstance(info, dict) or not info.get("targets"):
+            raise InputDataError(f"{args.plot_json}: needs a non-empty 'targets' list")
+        df = match_targets(trees, info["targets"], args.max_dist, source=str(args.segment / "trees.csv"))
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        df.to_csv(args.output, index=False, float_format="%.6f")
+        seg = read_las(args.segment / "segmented.laz", require=("classification",))
+        ground = seg.attrs["classification"] == 2
+        if ground.sum() < 3:
+            raise InputDataError(f"{args.segment / 'segmented.laz'}: fewer than 3 ground points (class 2)")
+        lo, hi = seg.xyz[:, :2].min(axis=0), seg.xyz[:, :2].max(axis=0)
+        txy = [read_las(args.segment / "trees" / f"{int(t)}.laz").xyz[:, :2] for t in df.tree_id]
+        tlo = np.min([a.min(axis=0) for a in txy], axis=0)
+        thi = np.max([a.max(axis=0) for a in txy], axis=0)
+        site = {"ground_z": float(np.median(seg.xyz[ground, 2])),
+                "extent": [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])],
+                "targets_extent": [float(tlo[0]), float(tlo[1]), float(thi[0]), float(thi[1])],
+                "n_targets": int(len(df))}
+        (args.output.parent / "site.json").write_text(json.dumps(site, indent=1) + "\n")
+        print(df.to_string(index=False))
+        return 0
+    if args.what == "crowns":
+        from vlsforest.scene import crown_points
+        from vlsforest.sim.output import save_npz
+
+        targets = _read_csv(args.targets, ("tree_id",), "targets table")
+        seg = read_las(args.segment / "segmented.laz", require=("tree_id",))
+        stems = {}
+        for t in targets.tree_id.astype(int):
+            f = args.stems / str(t) / "stem_points.laz"
+            stems[t] = read_las(f, allow_empty=True).xyz
+        xyz, owner = crown_points(seg.xyz, seg.attrs["tree_id"], stems)
+        save_npz(args.output, {"xyz": xyz, "owner": owner})
+        print(f"crowns: {len(xyz)} points of {len(np.unique(owner))} trees")
+        return 0
+    if args.what == "build":
+        from vlsforest.scene import assemble_scene, export_helios
+        from vlsforest.voxels import VoxelModel
+
+        targets = _read_csv(args.targets, ("tree_id",), "targets table")
+        site = _json(args.site, "site description")
+        model = VoxelModel.load(args.voxels)
+        stems = {int(t): args.stems / str(int(t)) / "stem.obj" for t in targets.tree_id}
+        refl = None
+        if args.reflectance_json:
+            try:
+                refl = json.loads(args.reflectance_json)
+            except json.JSONDecodeError as exc:
+                raise ConfigError(f"--reflectance-json: {exc}") from None
+        out = assemble_scene(args.output, model, targets, stems, site["ground_z"], site["extent"], refl, args.method)
+        if args.helios is not None:
+            export_helios(out, args.helios, scene_id=args.method or "vlsforest")
+        print(f"scene: {out} ({model.n_voxels} voxels)")
+        return 0
+    from vlsforest.scene import export_helios
+
+    print(export_helios(args.scene, args.output))
+    return 0

@@ -1,0 +1,178 @@
+"""Target trees and reference tree clouds (the study's reference extraction).
+
+* :func:`match_targets` pairs the field list of target trees (stem positions and species, as in
+  a plot's ``plot.json``) with the trees found by :mod:`vlsforest.segment`;
+* :func:`extract_reference` labels the points of a real ALS/ULS recording as a target tree when
+  they lie within ``radius`` (the study: 0.5 m ALS, 0.3 m ULS) of that tree's TLS points
+  (KD-trees); a point near two trees goes to the nearest. All returns are kept with their
+  return number, number of returns and GPS time (multiple-return shares need them).
+* :func:`extract_simulated` takes the points of a simulated cloud by object id (each target's
+  stem and crown carry their own ids, :func:`vlsforest.scene.object_ids`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.las import PointCloud
+
+#: species → group (leaf angle distribution and PADmax follow the group)
+SPECIES_GROUP = {
+    "fagus_sylvatica": "broadleaf",
+    "carpinus_betulus": "broadleaf",
+    "quercus_petraea": "broadleaf",
+    "acer_pseudoplatanus": "broadleaf",
+    "picea_abies": "conifer",
+    "pinus_sylvestris": "conifer",
+    "abies_alba": "conifer",
+    "pseudotsuga_menziesii": "conifer",
+    "broadleaf": "broadleaf",
+    "conifer": "conifer",
+}
+
+
+def species_group(species: str) -> str:
+    """``broadleaf`` or ``conifer`` for a species name (ConfigError if unknown)."""
+    try:
+        return SPECIES_GROUP[str(species).strip().lower()]
+    except KeyError:
+        raise ConfigError(f"unknown species {species!r}: give one of {sorted(SPECIES_GROUP)}") from None
+
+
+def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.0,
+                  source: str = "trees.csv") -> pd.DataFrame:
+    """Pair target stems (field positions) with segmented trees.
+
+    Parameters
+    ----------
+    trees : DataFrame
+        Segmented trees with columns ``tree_id, x, y, z, dbh, height, n_points``.
+    targets : list of dict
+        Field targets with ``x, y, species`` and optionally a field ``tree_id`` (``target_id``).
+    max_dist : float
+        Largest horizontal distance between the field position and the segmented stem base.
+    source : str
+        Name of the trees table for messages.
+
+    Returns
+    -------
+    DataFrame
+        ``target_id, tree_id, species, group, x, y, z, dbh, height, dist`` — one row per target,
+        in the order given; ``tree_id`` is the segmented id, ``z`` its stem base (the ground
+        elevation used for all of that tree's metrics).
+    """
+    need = {"tree_id", "x", "y", "z"}
+    if not need <= set(trees.columns):
+        raise InputDataError(f"{source}: needs columns {sorted(need)}")
+    if len(trees) == 0:
+        raise InputDataError(f"{source}: no trees were segmented")
+    if not targets:
+        raise InputDataError("no target trees given")
+    xy = trees[["x", "y"]].to_numpy(float)
+    rows, used = [], {}
+    for k, t in enumerate(targets):
+        try:
+            tx, ty = float(t["x"]), float(t["y"])
+        except (KeyError, TypeError, ValueError):
+            raise InputDataError(f"target {k}: needs numeric x and y") from None
+        d = np.hypot(xy[:, 0] - tx, xy[:, 1] - ty)
+        i = int(np.argmin(d))
+        tid = int(trees.tree_id.iloc[i])
+        target_id = int(t.get("tree_id", k + 1))
+        if d[i] > max_dist:
+            raise InputDataError(f"{source}: no segmented stem within {max_dist} m of target {target_id} "
+                                 f"at ({tx:.2f}, {ty:.2f}); nearest is {d[i]:.2f} m away")
+        if tid in used:
+            raise InputDataError(f"{source}: targets {used[tid]} and {target_id} both match segmented tree {tid}")
+        used[tid] = target_id
+        species = str(t.get("species", "broadleaf"))
+        row = {"target_id": target_id, "tree_id": tid, "species": species, "group": species_group(species),
+               "x": float(trees.x.iloc[i]), "y": float(trees.y.iloc[i]), "z": float(trees.z.iloc[i]),
+               "dist": float(d[i])}
+        for c in ("dbh", "height"):
+            row[c] = float(trees[c].iloc[i]) if c in trees.columns else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows, columns=["target_id", "tree_id", "species", "group", "x", "y", "z", "dbh",
+                                       "height", "dist"])
+
+
+def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np.ndarray:
+    """Label the points of a real recording by their nearest target tree.
+
+    Parameters
+    ----------
+    tree_points : dict int → ndarray (m, 3)
+        TLS points of each target tree.
+    cloud : PointCloud
+        The ALS/ULS recording.
+    radius : float
+        A point belongs to a tree when its distance to the tree's nearest TLS point is ≤ radius
+        (the study: 0.5 m ALS, 0.3 m ULS); a point within the radius of two trees goes to the
+        nearer one (ties: the smaller id).
+
+    Returns
+    -------
+    ndarray int64 (n,)
+        Tree id per point of ``cloud``; 0 = no target tree.
+    """
+    from scipy.spatial import cKDTree
+
+    if not (np.isfinite(radius) and radius > 0):
+        raise ConfigError(f"radius must be > 0, got {radius!r}")
+    n = len(cloud)
+    label = np.zeros(n, dtype=np.int64)
+    best = np.full(n, np.inf)
+    if n == 0:
+        return label
+    xyz = cloud.xyz
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    for tid in sorted(tree_points):
+        pts = np.asarray(tree_points[tid], dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            raise InputDataError(f"tree {tid}: no TLS points to extract a reference cloud with")
+        if not np.isfinite(pts).all():
+            raise InputDataError(f"tree {tid}: TLS points contain NaN coordinates")
+        tlo, thi = pts.min(axis=0) - radius, pts.max(axis=0) + radius
+        if np.any(thi < lo) or np.any(tlo > hi):
+            continue
+        cand = np.flatnonzero(np.all((xyz >= tlo) & (xyz <= thi), axis=1))
+        if len(cand) == 0:
+            continue
+        d, _ = cKDTree(pts).query(xyz[cand], k=1, distance_upper_bound=radius)
+        better = (d <= radius) & (d < best[cand])
+        label[cand[better]] = tid
+        best[cand[better]] = d[better]
+    return label
+
+
+def extract_simulated(cloud: PointCloud, id_map: dict) -> np.ndarray:
+    """Tree id per simulated point from its ``object_id``.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+        A simulated cloud (with the ``object_id`` attribute).
+    id_map : dict int → int
+        Object id → tree id (e.g. both the stem and the crown id of a target map to its tree id).
+
+    Returns
+    -------
+    ndarray int64 (n,)
+        Tree id per point (0 = not a target).
+    """
+    if "object_id" not in cloud.attrs:
+        raise InputDataError("simulated cloud has no object_id attribute")
+    oid = np.asarray(cloud.attrs["object_id"], dtype=np.int64)
+    keys = np.array(sorted(id_map), dtype=np.int64)
+    vals = np.array([id_map[k] for k in sorted(id_map)], dtype=np.int64)
+    out = np.zeros(len(oid), dtype=np.int64)
+    if len(keys):
+        pos = np.minimum(np.searchsorted(keys, oid), len(keys) - 1)
+        hit = keys[pos] == oid
+        out[hit] = vals[pos[hit]]
+    return out
+
+
+__all__ = ["SPECIES_GROUP", "extract_reference", "extract_simulated", "match_targets", "species_group"]

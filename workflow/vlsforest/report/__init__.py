@@ -1,0 +1,1 @@
+"""Figures and report material of the comparison (see :mod:`vlsforest.report.figures`)."""

@@ -1,0 +1,263 @@
+"""Scene assembly per plot × method (the study's simulation scenes) and HELIOS++ export.
+
+A plot scene (:func:`assemble_scene`) is a SCENE.yaml for :mod:`vlsforest.sim` with
+
+* a ground plane at the plot's ground elevation (median of the TLS ground points) over the
+  horizontal extent of the plot's TLS points;
+* each target tree's stem as its Poisson mesh (:mod:`vlsforest.stems`) and its crown as the
+  method's voxels of the tree's other TLS points;
+* every surrounding tree as voxels of the method;
+
+with object ids (:func:`object_ids`) that separate each target's stem (``10·t + 1``) and crown
+(``10·t + 2``, t = segmented tree id) from the surrounding trees (``2``) and the ground (``1``),
+and materials (reflectance of foliage for voxels, wood for stems, ground for the plane).
+
+:func:`export_helios` writes the same scene as HELIOS++ scene XML with its parts: OBJ for meshes
+and the plane, AMAPVox ``.vox`` (``fixed`` mode) for fixed-size voxel sets, ``.vox`` in
+``scaled`` mode for unshifted PAD-scaled cubes (PAD rescaled to one ``#max_pad`` per file so the
+cube sides are exactly ours) and OBJ cubes for shifted cubes (HELIOS++ cannot read per-cube
+offsets; its own ``randomShift`` draws other numbers).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import yaml
+
+from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.voxels import VoxelModel
+
+#: object ids of the ground plane and of all surrounding (non-target) trees
+GROUND_ID = 1
+SURROUNDING_ID = 2
+
+#: default reflectances of scene materials (fractions at the scanner wavelength)
+DEFAULT_REFLECTANCE = {"foliage": 0.45, "wood": 0.35, "ground": 0.3}
+
+
+def object_ids(tree_id: int) -> tuple[int, int]:
+    """Object ids ``(stem, crown)`` of target tree ``tree_id``."""
+    t = int(tree_id)
+    if t <= 0:
+        raise ConfigError(f"target tree ids must be positive, got {tree_id}")
+    return 10 * t + 1, 10 * t + 2
+
+
+def crown_points(xyz, tree_id, stem_masks: dict | None = None):
+    """Points that voxel models are built from: tree points minus ground and meshed stem points.
+
+    Parameters
+    ----------
+    xyz : ndarray (n, 3)
+        Segmented TLS points of the plot.
+    tree_id : ndarray (n,)
+        Tree id per point (0 = ground / no tree).
+    stem_masks : dict tree id → (ndarray (m, 3))
+        Stem points of each target tree (as selected by :mod:`vlsforest.stems`); they are
+        removed (exact coordinate match).
+
+    Returns
+    -------
+    xyz, owner : ndarrays
+    """
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    tid = np.asarray(tree_id, dtype=np.int64)
+    keep = tid > 0
+    for t, pts in (stem_masks or {}).items():
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        idx = np.flatnonzero(tid == int(t))
+        if len(pts) == 0 or len(idx) == 0:
+            continue
+        d, _ = cKDTree(pts).query(xyz[idx], k=1)
+        keep[idx[d < 1e-6]] = False
+    if not keep.any():
+        raise InputDataError("no tree points left to voxelise (every point is ground or stem)")
+    return xyz[keep], tid[keep]
+
+
+def assemble_scene(out: Path, model: VoxelModel, targets, stems: dict, ground_z: float, extent,
+                   reflectance: dict | None = None, method: str = "") -> Path:
+    """Write the SCENE.yaml of one plot × method and its voxel parts.
+
+    Parameters
+    ----------
+    out : path
+        SCENE.yaml to write; voxel parts go beside it (``crown_{t}.npz``, ``surrounding.npz``).
+    model : VoxelModel
+        The method's voxels of the whole plot (``owner`` = segmented tree id).
+    targets : DataFrame or list of int
+        Target tree ids (column ``tree_id``).
+    stems : dict tree id → path
+        Stem mesh (OBJ/PLY) of each target; referenced relative to the YAML.
+    ground_z : float
+        Plane elevation.
+    extent : (xmin, ymin, xmax, ymax)
+        Plane extent.
+    reflectance : dict, optional
+        ``foliage``, ``wood``, ``ground`` (default :data:`DEFAULT_REFLECTANCE`).
+    method : str
+        Method name written as a comment/name.
+
+    Returns
+    -------
+    Path
+        The SCENE.yaml.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    refl = dict(DEFAULT_REFLECTANCE)
+    for k, v in (reflectance or {}).items():
+        if k not in refl:
+            raise ConfigError(f"scene.reflectance: unknown material {k!r} (foliage, wood, ground)")
+        if not (isinstance(v, (int, float)) and 0 <= v <= 1):
+            raise ConfigError(f"scene.reflectance.{k} must be a fraction in [0, 1], got {v!r}")
+        refl[k] = float(v)
+    ids = [int(t) for t in (targets["tree_id"] if hasattr(targets, "columns") else targets)]
+    if not np.isfinite(ground_z):
+        raise InputDataError("ground elevation is not finite")
+    ext = [float(v) for v in extent]
+    if not (ext[0] < ext[2] and ext[1] < ext[3]):
+        raise InputDataError(f"plot extent {ext} is empty")
+    parts = [{"id": GROUND_ID, "type": "plane", "z": float(ground_z), "extent": ext,
+              "reflectance": refl["ground"], "classification": 2, "name": "ground"}]
+    for t in ids:
+        sid, cid = object_ids(t)
+        if t not in stems:
+            raise InputDataError(f"no stem mesh for target tree {t}")
+        rel = os.path.relpath(Path(stems[t]).resolve(), out.parent.resolve())
+        parts.append({"id": sid, "type": "mesh", "path": rel, "reflectance": refl["wood"],
+                      "classification": 4, "name": f"stem_{t}"})
+        m = model.owner == t
+        if m.any():
+            model.subset(m).save(out.parent / f"crown_{t}.npz")
+            parts.append({"id": cid, "type": "voxels", "path": f"crown_{t}.npz", "reflectance": refl["foliage"],
+                          "classification": 5, "name": f"crown_{t}"})
+    others = ~np.isin(model.owner, ids)
+    if others.any():
+        model.subset(others).save(out.parent / "surrounding.npz")
+        parts.append({"id": SURROUNDING_ID, "type": "voxels", "path": "surrounding.npz",
+                      "reflectance": refl["foliage"], "classification": 5, "name": "surrounding"})
+    doc = {"name": method, "voxel_backend": "auto", "parts": parts}
+    out.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return out
+
+
+def _cubes_obj(model: VoxelModel) -> tuple[np.ndarray, np.ndarray]:
+    from vlsforest.sim.scene import _CUBE_CORNERS, _CUBE_FACES
+
+    c = model.centres()
+    h = 0.5 * model.sides()
+    verts = (c[:, None, :] + h[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
+    faces = (_CUBE_FACES[None] + 8 * np.arange(len(c))[:, None, None]).reshape(-1, 3)
+    return verts, faces
+
+
+def _model_vox(model: VoxelModel, pad_max: float | None):
+    """A VoxFile for a voxel model (local grid; fixed cubes or unshifted scaled cubes)."""
+    from vlsforest.io.vox import make_vox
+
+    lo = model.ijk.min(axis=0)
+    cols = {}
+    if pad_max is not None:
+        # PAD' such that a0·(PAD'/pad_max)^0.5 equals our side: (side/a0)² · pad_max
+        cols["PadBVTotal"] = (model.sides() / model.size) ** 2 * pad_max
+    return make_vox(model.ijk - lo, model.size, lo * model.size, cols, max_pad=pad_max,
+                    header={"type": "TLS", "build-version": "1.4.3"})
+
+
+def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Path:
+    """Write a SCENE.yaml (as made by :func:`assemble_scene`) as a HELIOS++ scene.
+
+    Parameters
+    ----------
+    scene_yaml : path
+    out_dir : path
+        Folder for ``scene.xml`` and its parts (``part_{id}.obj`` / ``part_{id}.vox``).
+    scene_id : str
+        The XML scene id.
+
+    Returns
+    -------
+    Path
+        ``out_dir/scene.xml``. Part ids are our object ids, so HELIOS++'s ``hitObjectId`` matches
+        our ``object_id``.
+    """
+    from vlsforest.io.mesh import TriangleMesh, read_mesh, write_mesh
+    from vlsforest.io.vox import write_vox
+
+    scene_yaml = Path(scene_yaml)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc = yaml.safe_load(scene_yaml.read_text())
+    if not isinstance(doc, dict) or not isinstance(doc.get("parts"), list):
+        raise InputDataError(f"{scene_yaml}: not a SCENE.yaml with parts")
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>', "<document>",
+             f"  <scene id={quoteattr(scene_id)} name={quoteattr(str(doc.get('name') or scene_id))}>"]
+
+    def material(p):
+        return (f'      <!-- reflectance {p.get("reflectance", 0.5)} at the scanner wavelength; '
+                f'classification {p.get("classification", 1)} -->')
+
+    for p in doc["parts"]:
+        pid, kind = int(p["id"]), p["type"]
+        lines.append(f'    <part id="{pid}">')
+        if kind == "plane":
+            x0, y0, x1, y1 = p["extent"]
+            z = float(p["z"])
+            v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
+            f = np.array([[0, 1, 2], [0, 2, 3]])
+            fname = f"part_{pid}.obj"
+            write_mesh(out_dir / fname, TriangleMesh(v, f))
+            lines += ['      <filter type="objloader">',
+                      f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+                      "      </filter>", material(p)]
+        elif kind == "mesh":
+            mesh = read_mesh(scene_yaml.parent / p["path"])
+            fname = f"part_{pid}.obj"
+            write_mesh(out_dir / fname, mesh)
+            lines += ['      <filter type="objloader">',
+                      f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+                      "      </filter>", material(p)]
+        elif kind == "voxels" and str(p.get("path", "")).endswith(".npz"):
+            model = VoxelModel.load(scene_yaml.parent / p["path"])
+            shifted = model.centre is not None and not np.allclose(model.centre, (model.ijk + 0.5) * model.size)
+            if model.half is None:
+                fname = f"part_{pid}.vox"
+                write_vox(out_dir / fname, _model_vox(model, None))
+                lines += ['      <filter type="detailedVoxels">',
+                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+                          '        <param type="string" key="intersectionMode" value="fixed" />',
+                          "      </filter>", material(p)]
+            elif not shifted:
+                fname = f"part_{pid}.vox"
+                write_vox(out_dir / fname, _model_vox(model, 1.0))
+                lines += ['      <filter type="detailedVoxels">',
+                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+                          '        <param type="string" key="intersectionMode" value="scaled" />',
+                          '        <param type="double" key="intersectionArgument" value="0.5" />',
+                          "      </filter>", material(p)]
+            else:
+                v, f = _cubes_obj(model)
+                fname = f"part_{pid}.obj"
+                write_mesh(out_dir / fname, TriangleMesh(v, f))
+                lines += ['      <filter type="objloader">',
+                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+                          "      </filter>", material(p)]
+        else:
+            raise InputDataError(f"{scene_yaml}: part {pid} of type {kind!r} cannot be exported "
+                                 "(only planes, meshes and .npz voxel models)")
+        lines.append("    </part>")
+    lines += ["  </scene>", "</document>", ""]
+    xml = out_dir / "scene.xml"
+    xml.write_text("\n".join(lines))
+    return xml
+
+
+__all__ = ["DEFAULT_REFLECTANCE", "GROUND_ID", "SURROUNDING_ID", "assemble_scene", "crown_points",
+           "export_helios", "object_ids"]
