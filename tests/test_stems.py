@@ -261,7 +261,7 @@ def test_cli_outputs_and_reproducible(quick_targets, quick_forest, tmp_path):
     args = [str(path), "--scans", str(scans), "--base", str(t.x), str(t.y), str(t.z_ground), "--dbh", str(t.dbh)]
     assert cli_main(["stems", *args, "-o", str(tmp_path / "a")]) == 0
     assert cli_main(["stems", *args, "-o", str(tmp_path / "b")]) == 0
-    for name in ("stem.ply", "stem.obj", "stem_points.laz"):
+    for name in ("stem.ply", "stem.obj", "stem_points.laz", "stem.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     ply, obj = read_mesh(tmp_path / "a" / "stem.ply"), read_mesh(tmp_path / "a" / "stem.obj")
     assert np.array_equal(ply.faces, obj.faces) and np.allclose(ply.vertices, obj.vertices, atol=0, rtol=0)
@@ -278,8 +278,8 @@ def test_cli_outputs_and_reproducible(quick_targets, quick_forest, tmp_path):
     assert abs(info["mean_radius_below_crown"] - t.dbh / 2) < 0.03
     z = ply.vertices[:, 2]
     assert info["mesh_z_range"] == [z.min(), z.max()]
-    for key in ("time_select_s", "time_mesh_s", "time_total_s"):
-        assert info[key] > 0
+    # results only (timings go to the log), so that stem.json is reproducible byte for byte
+    assert not [k for k in info if k.startswith("time_")]
     # plot mode (the workflow rule): same tree from a segmentation folder, same bytes
     seg = tmp_path / "segment"
     (seg / "trees").mkdir(parents=True)

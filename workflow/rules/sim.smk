@@ -31,7 +31,6 @@ rule simulate:
         site="results/{plot}/site.json",
     output:
         laz="results/{plot}/{method}/{scenario}/sim.laz",
-        pulses="results/{plot}/{method}/{scenario}/pulses.npz",
         timing="results/{plot}/{method}/{scenario}/timing.json",
     log:
         "logs/simulate/{plot}_{method}_{scenario}.log",
@@ -51,7 +50,7 @@ rule simulate:
         library=SIM_HASH,
     shell:
         "python -m vlsforest.cli simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
-        "--pulses {output.pulses} --timing {output.timing} --seed {params.seed} --workers {threads} "
+        "--timing {output.timing} --seed {params.seed} --workers {threads} "
         "--region-from {input.site} --region-margin {params.margin} > {log} 2>&1"
 
 

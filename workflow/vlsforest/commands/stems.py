@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -135,16 +136,12 @@ def _one_tree(path: Path, scans_path: Path, scanners: dict, base, dbh, cfg: dict
     write_las(out / "stem_points.laz", cloud.subset(result.mask), extra={"tree_point_index": idx})
     t_write = time.perf_counter() - t1
     summary = dict(result.summary)
-    summary.update(
-        {
-            "input": str(path),
-            "scans": str(scans_path),
-            "settings": {k: cfg[k] for k in sorted(cfg)},
-            "time_read_s": t_read,
-            "time_write_s": t_write,
-            "time_total_s": time.perf_counter() - t0,
-        }
-    )
+    timings = {k: summary.pop(k) for k in [k for k in summary if k.startswith("time_")]}
+    timings.update({"time_read_s": t_read, "time_write_s": t_write, "time_total_s": time.perf_counter() - t0})
+    # stem.json holds results only (same inputs → same bytes); timings go to the log
+    summary.update({"input": str(path), "scans": str(scans_path), "settings": {k: cfg[k] for k in sorted(cfg)}})
+    print(f"vlsforest stems: {path}: " + ", ".join(f"{k[5:-2]} {v:.2f} s" for k, v in timings.items()),
+          file=sys.stderr)
     (out / "stem.json").write_text(json.dumps(_json_ready(summary), indent=2, sort_keys=True) + "\n")
     return summary
 
@@ -205,6 +202,6 @@ def _run_plot(args, cfg: dict, scanners: dict) -> int:
         s = _one_tree(Path(args.segment) / "trees" / f"{tid}.laz", args.scans, scanners, b, d, cfg, out / str(tid))
         print(
             f"vlsforest stems: tree {tid}: {s['n_stem_points']} stem points, mesh {s['mesh_vertices']} vertices / "
-            f"{s['mesh_faces']} faces, {s['time_total_s']:.1f} s"
+            f"{s['mesh_faces']} faces"
         )
     return 0
