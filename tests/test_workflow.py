@@ -1,14 +1,17 @@
 """The Snakemake workflow: default target, config schema, end-to-end quick run, incremental
-behaviour, determinism, the simulated ground point density, SLURM dry run and lint.
+behaviour (nothing changed, PADmax changed, ULS window changed), determinism, every study method
+on the quick plot, SLURM dry run and lint.
 
 Every run uses a temporary working directory with the repository's ``Snakefile``; nothing is
-written into the repository. The end-to-end runs use ``config/quick.yaml`` (one demo tree,
-one ALS and one ULS flight line each; about 15 s per run on 2 cores).
+written into the repository. The end-to-end runs use ``config/quick.yaml`` (the quick virtual
+forest: one plot with 4 targets, four voxel methods, ALS and ULS; about 2.5 min per run on 2
+cores).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import shutil
@@ -396,3 +399,46 @@ def test_lint_passes(tmp_path):
     proc = _snakemake("--lint", cwd=tmp_path)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
     assert "Congratulations" in proc.stdout + proc.stderr
+
+
+def test_every_study_method_simulates_on_the_quick_plot(quick_run, tmp_path):
+    """Each of the study's seven methods (config/config.yaml) builds a voxel model from the quick
+    plot's crown points and PAD grid, assembles into a scene and simulates without error; every
+    target crown returns points under its own object id; voxel counts grow as the cells shrink
+    and the scaled models never outnumber the 0.25 m cells."""
+    from vlsforest.scene import assemble_scene, object_ids
+    from vlsforest.sim import Scene, simulate
+    from vlsforest.sim.survey import survey_from_dict
+    from vlsforest.voxels import ModelInputs, PadGrid, build_model
+
+    workdir, _, _ = quick_run
+    plot = workdir / "results" / "Q1"
+    methods = _load(DEFAULT)["methods"]
+    assert len(methods) == 7
+    z = np.load(plot / "crowns.npz")
+    targets = pd.read_csv(plot / "targets.csv")
+    site = json.loads((plot / "site.json").read_text())
+    inputs = ModelInputs(z["xyz"], z["owner"], dict(zip(targets.tree_id, targets.group)),
+                         PadGrid.from_vox(plot / "pad" / "pad.vox"), 0)
+    stems = {int(t): plot / "stems" / str(int(t)) / "stem.obj" for t in targets.tree_id}
+    x0, y0, x1, y1 = site["targets_extent"]
+    zf = site["ground_z"] + 70.0
+    survey = survey_from_dict({"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 1},
+                               "platform": {"type": "linear", "speed_mps": 5.0,
+                                            "legs": [{"start": [x0 - 5, 0.5 * (y0 + y1), zf],
+                                                      "end": [x1 + 5, 0.5 * (y0 + y1), zf]}]}})
+    counts = {}
+    for name, entry in methods.items():
+        model = build_model(entry, inputs, name)
+        counts[name] = model.n_voxels
+        yaml_path = assemble_scene(tmp_path / name / "scene.yaml", model, targets, stems, site["ground_z"],
+                                   site["extent"], method=name)
+        res = simulate(Scene.from_yaml(yaml_path), survey, seed=0, workers=1, progress=False,
+                       region=[x0 - 5, y0 - 5, x1 + 5, y1 + 5])
+        oid = set(np.unique(res.points["object_id"]).tolist())
+        for t in targets.tree_id:
+            assert object_ids(int(t))[1] in oid, (name, t)
+    print("\nvoxel counts on the quick plot:", counts)
+    assert counts["fixed_0.25"] < counts["fixed_0.10"] < counts["fixed_0.05"] < counts["fixed_0.02"]
+    for name in ("scaled", "scaled_random_shift", "scaled_cog_shift"):
+        assert counts[name] <= counts["fixed_0.25"]
