@@ -53,7 +53,7 @@ for _method_rules in sorted(Path(workflow.basedir, "workflow", "rules", "methods
 
 # every configured method needs a kind that something builds: built in, or a rule voxels_<kind>
 for _name, _entry in config["methods"].items():
-    if _entry["kind"] not in BUILTIN_KINDS and f"voxels_{_entry['kind']}" not in dir(rules):
+    if _entry["kind"] not in BUILTIN_KINDS and not has_rule(f"voxels_{_entry['kind']}"):
         raise WorkflowError(
             f"Invalid configuration at 'methods.{_name}.kind': unknown kind {_entry['kind']!r} "
             f"(built in: {', '.join(BUILTIN_KINDS)}; or add workflow/rules/methods/<kind>.smk "

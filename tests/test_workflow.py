@@ -201,6 +201,8 @@ def _mutate(cfg, what):
         cfg["methods"]["fixed_0.25"]["voxel_size"] = 0
     elif what == "bad_lad":
         cfg["pad"]["groups"]["broadleaf"]["lad"] = "flat"
+    elif what == "unknown_method_kind":
+        cfg["methods"]["fixed_0.25"]["kind"] = "voxelz"
     elif what == "real_plot_without_scans":
         cfg["plots"]["R1"] = {"kind": "real", "tls": ["a.laz"], "plot_json": "p.json"}
     return cfg
@@ -216,6 +218,7 @@ BAD_CONFIGS = [
     ("bad_voxel_size", "methods.fixed_0.25.voxel_size", "less than or equal to the minimum of 0"),
     ("bad_lad", "pad.groups.broadleaf.lad", "'flat' is not one of"),
     ("real_plot_without_scans", "plots.R1", "'scans' is a required property"),
+    ("unknown_method_kind", "methods.fixed_0.25.kind", "unknown kind 'voxelz'"),
 ]
 
 
@@ -478,3 +481,42 @@ def test_report_html_embeds_every_figure_with_data(quick_run, tmp_path):
         assert float(img[..., :3].std()) > 0.01, f"{name} is blank"
     for table in ("tree_metrics.csv", "voxel_counts.csv", "findings.md"):
         assert table in html
+
+
+def test_method_added_as_rule_file_flows_through_the_study(tmp_path):
+    """The example method of workflow/rules/methods/ (kind linear_pad), added by a config entry
+    only, is scheduled through voxels → scene → simulations → tree clouds → metrics → summaries,
+    statistics and figures (dry run)."""
+    cfg = _load(QUICK)
+    cfg["methods"]["linear_pad"] = {"kind": "linear_pad"}
+    path = tmp_path / "with_linear_pad.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    updated = _api_dry_run(tmp_path, path)
+    assert updated == _expected_outputs(cfg)
+    for f in ("voxels.npz", "scene", "als/sim.laz", "uls/metrics.csv"):
+        assert f"results/Q1/linear_pad/{f}" in updated
+
+
+def test_linear_pad_method_function(quick_run):
+    """The example method's function: PAD-scaled cubes with side ∝ PAD/PADmax (α = 1), so each
+    cube is no larger than the study's α = 0.5 cube of the same cell."""
+    import importlib.util
+
+    from vlsforest.voxels import ModelInputs, PadGrid, build_model
+
+    spec = importlib.util.spec_from_file_location("linear_pad", REPO / "workflow" / "rules" / "methods" / "linear_pad.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    workdir, _, _ = quick_run
+    plot = workdir / "results" / "Q1"
+    z = np.load(plot / "crowns.npz")
+    targets = pd.read_csv(plot / "targets.csv")
+    inputs = ModelInputs(z["xyz"], z["owner"], dict(zip(targets.tree_id, targets.group)),
+                         PadGrid.from_vox(plot / "pad" / "pad.vox"), 0)
+    groups = _load(QUICK)["pad"]["groups"]
+    lin = mod.linear_pad_model(inputs, groups=groups)
+    sq = build_model({"kind": "scaled", "groups": groups}, inputs)
+    assert np.array_equal(lin.ijk, sq.ijk)
+    pmax = np.where(np.isin(lin.owner, targets.tree_id[targets.group == "conifer"]), 8.0, 5.0)
+    assert np.allclose(2 * lin.half, 0.25 * lin.pad / pmax)
+    assert (lin.half <= sq.half + 1e-12).all() and (lin.half < sq.half).any()

@@ -172,6 +172,15 @@ def builtin_methods():
     return [m for m in METHODS if config["methods"][m]["kind"] in BUILTIN_KINDS]
 
 
+def has_rule(name):
+    """Whether a rule of that name is defined (``rules.<name>`` raises otherwise)."""
+    try:
+        getattr(rules, name)
+    except Exception:
+        return False
+    return True
+
+
 def methods_of_kind(kind):
     """Wildcard pattern matching exactly the configured methods of ``kind`` (none: matches nothing)."""
     names = [m for m in METHODS if config["methods"][m]["kind"] == kind]
