@@ -520,3 +520,23 @@ def test_linear_pad_method_function(quick_run):
     pmax = np.where(np.isin(lin.owner, targets.tree_id[targets.group == "conifer"]), 8.0, 5.0)
     assert np.allclose(2 * lin.half, 0.25 * lin.pad / pmax)
     assert (lin.half <= sq.half + 1e-12).all() and (lin.half < sq.half).any()
+
+
+def test_added_plot_rebuilds_only_that_plot_and_the_summaries(quick_run):
+    """(c) one plot added → only that plot's jobs and the summaries. The added plot is a
+    ``kind: real`` plot naming files (here the quick forest's own recordings of Q1), which also
+    exercises the real-data inputs of every rule."""
+    workdir, _, _ = quick_run
+    cfg = _load(QUICK)
+    base = "results/forest/plots/Q1"
+    tls = sorted(str(p.relative_to(workdir)) for p in (workdir / base / "tls").glob("scan_*.laz"))
+    real = {"kind": "real", "tls": tls, "scans": f"{base}/tls/scans.csv", "plot_json": f"{base}/plot.json",
+            "als": f"{base}/als.laz", "uls": f"{base}/uls.laz",
+            "trajectory_als": f"{base}/trajectory_als.csv", "trajectory_uls": f"{base}/trajectory_uls.csv"}
+    plots = {**cfg["plots"], "R1": real}
+    updated = _api_dry_run(workdir, QUICK, config={"plots": plots})
+    expected = {f for f in _expected_outputs({**cfg, "plots": {"R1": real}}) if f.startswith("results/R1/")}
+    expected -= {"results/R1/pad/validation.csv", "results/R1/pad/validation.png"}  # no truth for real data
+    expected |= {f"results/summary/{f}" for f in ("tree_metrics.csv", "voxel_counts.csv", "sim_times.csv", "figures")}
+    expected |= {f"results/summary/stats/{f}" for f in STATS_FILES}
+    assert updated == expected
