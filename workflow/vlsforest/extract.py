@@ -18,19 +18,18 @@ import pandas as pd
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud
 
+def _species_groups() -> dict:
+    from vlsforest.synth.species import SPECIES
+
+    groups = {name: sp.group for name, sp in SPECIES.items()}  # the tree generator's species
+    # species the generator does not model, and the group names themselves
+    groups.update({"acer_pseudoplatanus": "broadleaf", "abies_alba": "conifer",
+                   "broadleaf": "broadleaf", "conifer": "conifer"})
+    return groups
+
+
 #: species → group (leaf angle distribution and PADmax follow the group)
-SPECIES_GROUP = {
-    "fagus_sylvatica": "broadleaf",
-    "carpinus_betulus": "broadleaf",
-    "quercus_petraea": "broadleaf",
-    "acer_pseudoplatanus": "broadleaf",
-    "picea_abies": "conifer",
-    "pinus_sylvestris": "conifer",
-    "abies_alba": "conifer",
-    "pseudotsuga_menziesii": "conifer",
-    "broadleaf": "broadleaf",
-    "conifer": "conifer",
-}
+SPECIES_GROUP = _species_groups()
 
 
 def species_group(species: str) -> str:

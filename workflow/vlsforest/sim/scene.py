@@ -561,9 +561,9 @@ def _add_part_from_dict(scene: Scene, p, base: Path, where: str) -> None:
             col = p.get("pad_column", "PadBVTotal")
             if col not in vox.columns:
                 raise InputDataError(f"{path_of('path')}: no column {col!r} for scaled voxels")
-            pad = np.asarray(vox.column(col), dtype=np.float64)
-            pad = np.where(np.isfinite(pad), np.clip(pad, 0.0, pad_max), 0.0)
-            half_all = 0.5 * vox.res * (pad / pad_max) ** alpha
+            from vlsforest.voxels import scaled_cubes
+
+            half_all = scaled_cubes(ijk, vox.column(col), pad_max, vox.res, alpha)
             keep = half_all > 0
             ijk, half = ijk[keep], half_all[keep]
             centre = vox.min_corner + (ijk + 0.5) * vox.res
