@@ -43,6 +43,7 @@ include: "workflow/rules/scene.smk"
 include: "workflow/rules/sim.smk"
 include: "workflow/rules/metrics.smk"
 include: "workflow/rules/stats.smk"
+include: "workflow/rules/diagnose.smk"
 
 
 # Voxel methods added as rule files (see README "Add a voxel method"): every rules/methods/*.smk
@@ -59,6 +60,27 @@ for _name, _entry in config["methods"].items():
             f"(built in: {', '.join(BUILTIN_KINDS)}; or add workflow/rules/methods/<kind>.smk "
             f"with a rule voxels_<kind>)"
         )
+
+# the diagnosis simulates one configured method on configured scenarios
+_diag = config.get("diagnosis") or {}
+if _diag.get("enabled", False):
+    if _diag.get("method", "scaled") not in config["methods"]:
+        raise WorkflowError(
+            f"Invalid configuration at 'diagnosis.method': {_diag.get('method', 'scaled')!r} is not a "
+            f"configured method ({', '.join(config['methods'])})"
+        )
+    for _pl in _diag.get("plots", []):
+        if _pl not in config["plots"]:
+            raise WorkflowError(
+                f"Invalid configuration at 'diagnosis.plots': {_pl!r} is not a configured plot "
+                f"({', '.join(config['plots'])})"
+            )
+    for _sc in _diag.get("scenarios", []):
+        if _sc not in config["scenarios"]:
+            raise WorkflowError(
+                f"Invalid configuration at 'diagnosis.scenarios': {_sc!r} is not a configured scenario "
+                f"({', '.join(config['scenarios'])})"
+            )
 
 
 rule all:

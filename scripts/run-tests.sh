@@ -4,6 +4,7 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/bootstrap.sh"
+bash "$ROOT/scripts/test-deps.sh"
 cd "$ROOT"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()

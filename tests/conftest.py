@@ -26,3 +26,15 @@ def quick_forest(tmp_path_factory):
     out = tmp_path_factory.mktemp("quick_forest") / "forest"
     synthesize(QUICK_SYNTH, out, seed=0, quiet=True)
     return out
+
+
+@pytest.fixture(scope="session")
+def quick_run(tmp_path_factory):
+    """One completed end-to-end run of ``config/quick.yaml`` with the local executor, shared by
+    every test module that inspects its outputs (~2.5 min on 2 cores)."""
+    from wfrun import run_quick
+
+    workdir = tmp_path_factory.mktemp("quick")
+    proc, seconds = run_quick(workdir)
+    print(f"\nquick end-to-end run: {seconds:.1f} s")
+    return workdir, proc, seconds

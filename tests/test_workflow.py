@@ -15,8 +15,6 @@ import json
 import math
 import os
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -25,10 +23,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from wfrun import QUICK, REPO, SNAKEFILE, run_quick, snakemake_cli
 
-REPO = Path(__file__).resolve().parents[1]
-SNAKEFILE = REPO / "Snakefile"
-QUICK = REPO / "config" / "quick.yaml"
 DEFAULT = REPO / "config" / "config.yaml"
 SCHEMA = REPO / "config" / "schema.yaml"
 SLURM_PROFILE = REPO / "profiles" / "slurm"
@@ -52,8 +48,7 @@ def _load(path):
 
 def _snakemake(*args, cwd, timeout=300):
     """Run the Snakemake CLI on the repository's Snakefile in ``cwd``."""
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
-    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=dict(os.environ))
+    return snakemake_cli(*args, cwd=cwd, timeout=timeout)
 
 
 def _expected_outputs(cfg):
@@ -62,6 +57,10 @@ def _expected_outputs(cfg):
     out |= {f"results/summary/{f}" for f in ("tree_metrics.csv", "voxel_counts.csv", "sim_times.csv",
                                              "pad_validation.csv", "pad_validation.png", "figures")}
     out |= {f"results/summary/stats/{f}" for f in STATS_FILES}
+    diag = cfg.get("diagnosis") or {}
+    if diag.get("enabled"):
+        for scenario in diag.get("scenarios", cfg["scenarios"]):
+            out |= {f"results/diagnosis/{scenario}.{ext}" for ext in ("sim.yaml", "json", "png")}
     for plot in cfg["plots"]:
         out |= {f"results/{plot}/{f}" for f in ("segment", "targets.csv", "site.json", "stems", "crowns.npz",
                                                 "pad/pad.vox", "pad/validation.csv", "pad/validation.png")}
@@ -129,20 +128,7 @@ def _api_dry_run(workdir, configfile=None, config=None):
 
 def _run_quick(workdir):
     """Run the quick config to completion in ``workdir``; return (process, seconds)."""
-    t0 = time.perf_counter()
-    proc = _snakemake("--cores", 2, "--configfile", QUICK, cwd=workdir, timeout=900)
-    dt = time.perf_counter() - t0
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return proc, dt
-
-
-@pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
-    """One completed end-to-end run of config/quick.yaml (shared by the tests below)."""
-    workdir = tmp_path_factory.mktemp("quick")
-    proc, seconds = _run_quick(workdir)
-    print(f"\nquick end-to-end run: {seconds:.1f} s")
-    return workdir, proc, seconds
+    return run_quick(workdir)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -449,9 +435,8 @@ def test_every_study_method_simulates_on_the_quick_plot(quick_run, tmp_path):
 
 def test_report_html_embeds_every_figure_with_data(quick_run, tmp_path):
     """`snakemake --report` writes one self-contained HTML; every PNG the workflow marks for the
-    report is embedded as a data URI that decodes to a non-blank image (what a browser loads;
-    no headless browser is installed on these machines, so the embedded images are decoded here
-    the way a browser would receive them)."""
+    report is embedded as a data URI that decodes to a non-blank image, and the tables are in it
+    (tests/test_report_browser.py opens the same report in headless Chromium)."""
     import base64
     import io
     import re

@@ -105,6 +105,7 @@ PAD_HASH = library_hash("pad", "sim", "commands/pad.py", *_BASE)
 SCENE_HASH = library_hash("scene.py", "voxels.py", "extract.py", "commands/scene.py", "commands/voxels.py", "pad", *_BASE)
 EXTRACT_HASH = library_hash("extract.py", "scene.py", "commands/extract.py", *_BASE)
 METRICS_HASH = library_hash("metrics.py", "commands/metrics.py", "commands/collect.py", *_BASE)
+DIAGNOSE_HASH = library_hash("diagnose", "sim", "metrics.py", "extract.py", "commands/diagnose.py", *_BASE)
 STATS_HASH = library_hash("stats.py", "report", "commands/stats.py", "commands/report.py", *_BASE)
 #: the synthesis stage's code: the virtual forest plus the simulator it records with
 SYNTH_HASH = library_hash("synth", "sim", "commands/synth.py", *_BASE)
@@ -245,6 +246,7 @@ def final_outputs():
     ]
     if virtual_plots():
         out.append("results/summary/pad_validation.csv")
+    out += expand("results/diagnosis/{scenario}.json", scenario=diagnosis_scenarios())
     return out
 
 

@@ -51,7 +51,10 @@ rule simulate:
     shell:
         "python -m vlsforest.cli simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
         "--timing {output.timing} --seed {params.seed} --workers {threads} "
-        "--region-from {input.site} --region-margin {params.margin} > {log} 2>&1"
+        "--region-from {input.site} --region-margin {params.margin} 2>&1 "
+        # progress: every 10 % of the blocks a line goes to the log and to the terminal,
+        # prefixed with the job's plot/method/scenario (pipefail keeps the exit status)
+        "| tee {log} | sed -u 's|^|[{wildcards.plot}/{wildcards.method}/{wildcards.scenario}] |' >&2"
 
 
 rule sim_trees:

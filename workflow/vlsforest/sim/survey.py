@@ -706,22 +706,13 @@ _Loader.add_implicit_resolver(
 )
 
 
-def load_survey(path) -> Survey:
-    """Read and validate a SURVEY.yaml file.
-
-    Parameters
-    ----------
-    path : str or Path
-
-    Returns
-    -------
-    Survey
+def load_survey_dict(path) -> dict:
+    """Read a SURVEY.yaml file into a plain mapping (not yet validated; see :func:`load_survey`).
 
     Raises
     ------
     ConfigError
-        Missing/unreadable file, YAML syntax error (with its line) or an invalid value
-        (naming the key path, e.g. ``platform.legs[2].end``).
+        Missing/unreadable file, YAML syntax error (with its line) or an empty file.
     """
     path = Path(path)
     try:
@@ -741,6 +732,28 @@ def load_survey(path) -> Survey:
         raise ConfigError(f"{path}:{where}: YAML syntax error: {problem}") from None
     if data is None:
         raise ConfigError(f"{path}: the survey file is empty")
+    return data
+
+
+def load_survey(path) -> Survey:
+    """Read and validate a SURVEY.yaml file.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Survey
+
+    Raises
+    ------
+    ConfigError
+        Missing/unreadable file, YAML syntax error (with its line) or an invalid value
+        (naming the key path, e.g. ``platform.legs[2].end``).
+    """
+    path = Path(path)
+    data = load_survey_dict(path)
     try:
         return survey_from_dict(data, base_dir=path.resolve().parent)
     except ConfigError as exc:

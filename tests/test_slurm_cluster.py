@@ -1,0 +1,137 @@
+"""The quick workflow on a real (single-node, localhost) SLURM cluster through profiles/slurm.
+
+A throw-away cluster (munged, slurmctld, slurmd; see tests/slurm_cluster.py) is started in a
+temporary folder; Snakemake runs ``config/quick.yaml`` with ``--workflow-profile profiles/slurm``
+and the SLURM executor, so every job goes through ``sbatch`` and runs under ``slurmd``. The
+results must be byte-identical to the local run (``quick_run`` fixture) except for the wall-clock
+timings, and the daemons must be gone afterwards.
+
+Needs root, the Debian packages munge/slurmctld/slurmd/slurm-client (scripts/test-deps.sh) and
+snakemake-executor-plugin-slurm; skipped with the reason otherwise. About 5 min on 2 cores on top
+of the shared quick run.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from slurm_cluster import missing_requirements, pid_alive, single_node_cluster
+from wfrun import QUICK, REPO, snakemake_cli
+
+SLURM_PROFILE = REPO / "profiles" / "slurm"
+
+#: wall-clock timings differ between runs by nature (as in test_workflow's determinism test)
+NONDETERMINISTIC = ("timing.json", "sim_times.csv", "table5.csv")
+
+_REASON = missing_requirements()
+pytestmark = pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
+
+
+def _result_files(workdir):
+    return {str(p.relative_to(workdir)) for p in (Path(workdir) / "results").rglob("*")
+            if p.is_file() and p.name not in NONDETERMINISTIC}
+
+
+def _steps_done(text):
+    """Total job count of a finished Snakemake run ("N of N steps (100%) done")."""
+    done = re.findall(r"(\d+) of (\d+) steps \(100%\) done", text)
+    assert done, text[-3000:]
+    return int(done[-1][1])
+
+
+def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
+    pytest.importorskip("snakemake_executor_plugin_slurm")
+    pytest.importorskip("snakemake_executor_plugin_slurm_jobstep")
+    local, local_proc, local_seconds = quick_run
+    profile = yaml.safe_load((SLURM_PROFILE / "profile.yaml").read_text())
+    assert profile["executor"] == "slurm"
+    workdir = tmp_path / "work"
+    workdir.mkdir()
+
+    with single_node_cluster(tmp_path / "cluster") as cluster:
+        daemons = dict(cluster.pids)
+        assert set(daemons) == {"munged", "slurmctld", "slurmd"}
+        assert all(pid_alive(pid) for pid in daemons.values())
+        cpus = int(cluster.run("sinfo", "--noheader", "--format", "%c").stdout.split()[0])
+        t0 = time.perf_counter()
+        proc = snakemake_cli(
+            "--workflow-profile", SLURM_PROFILE,
+            "--configfile", QUICK,
+            "--executor", "slurm",
+            # no conda here: env-modules switches the profile's conda off (no rule uses
+            # envmodules:), so the jobs run in this venv, as the local run does
+            "--sdm", "env-modules",
+            # the profile's threads (simulate: 8, synth: 16) exceed this node's CPUs; SLURM
+            # would keep such jobs pending forever
+            "--max-threads", cpus,
+            # no slurmdbd: sacct has no records, squeue knows the jobs for MinJobAge (1 h)
+            "--slurm-status-command", "squeue",
+            # the plugin polls after this many seconds, then 10 s longer each time nothing
+            # finished (reset on a finish); the quick run's jobs take ~5-20 s each
+            "--slurm-init-seconds-before-status-checks", 3,
+            "--slurm-keep-successful-logs",
+            cwd=workdir, timeout=900, env=cluster.env)
+        seconds = time.perf_counter() - t0
+        out = proc.stdout + proc.stderr
+        assert proc.returncode == 0, out[-5000:] + "\n" + cluster.log_tails()
+        run_id = re.search(r"SLURM run ID: (\S+)", out).group(1)
+        jobs = [ln.split("|") for ln in cluster.run(
+            "squeue", "--noheader", "--states=all", "--name", run_id,
+            "--format", "%i|%T|%N|%C|%k|%S|%e").stdout.split()]
+    print(f"\nquick run through SLURM: {seconds:.1f} s ({len(jobs)} sbatch jobs; "
+          f"local run {local_seconds:.1f} s)")
+
+    # the daemons started for the test are gone
+    assert not any(pid_alive(pid) for pid in daemons.values()), daemons
+    assert all(d.proc.returncode is not None for d in cluster.daemons.values())
+
+    # every job of the DAG went through sbatch and completed on the node; the profile was used
+    assert "profiles/slurm" in out
+    submitted = re.findall(r"has been submitted with SLURM jobid (\d+)", out)
+    n_steps = _steps_done(out)
+    assert n_steps == _steps_done(local_proc.stdout + local_proc.stderr)
+    local_rules = re.findall(r"^localrule (\w+):", out, flags=re.M)
+    assert local_rules == ["all"]  # only the input-only target rule runs on the submit host
+    assert len(set(submitted)) == len(submitted) == n_steps - 1 >= 10
+    assert {j[0] for j in jobs} == set(submitted)
+    assert all(state == "COMPLETED" and node == cluster.node for _, state, node, *_ in jobs), jobs
+    assert any(comment.startswith("rule_simulate") for *_, comment, _, _ in jobs), jobs
+    slurm_logs = {p.stem for p in (workdir / ".snakemake" / "slurm_logs").rglob("*.log")}
+    assert slurm_logs == set(submitted)
+    # SLURM's own limits came from the rules and the profile: synth asked for every CPU
+    synth = [j for j in jobs if j[4] == "rule_synth"]
+    assert len(synth) == 1 and int(synth[0][3]) == cpus
+    # select/cons_tres packed two 1-core jobs onto the 2 CPUs at once at least once
+    spans = sorted((s, e) for _, _, _, c, _, s, e in jobs if int(c) == 1)
+    assert any(b[0] < a[1] for a, b in zip(spans, spans[1:])), spans
+
+    # the same results as the local run, byte for byte (timings aside)
+    files = _result_files(local)
+    assert files == _result_files(workdir)
+    assert any(f.endswith("sim.laz") for f in files) and any(f.endswith(".png") for f in files)
+    differ = [f for f in sorted(files) if (local / f).read_bytes() != (workdir / f).read_bytes()]
+    assert not differ, differ
+
+
+def test_a_failed_start_stops_the_daemons_already_started(tmp_path, monkeypatch):
+    """slurmctld dies at start (here: /bin/false in its place): the error names it and the
+    munged started before it is stopped."""
+    import slurm_cluster
+
+    which, started = slurm_cluster._which, []
+    monkeypatch.setattr(slurm_cluster, "_which",
+                        lambda name: "/bin/false" if name == "slurmctld" else which(name))
+    start = slurm_cluster._start
+    monkeypatch.setattr(slurm_cluster, "_start", lambda *a, **k: started.append(start(*a, **k))
+                        or started[-1])
+    with pytest.raises(slurm_cluster.ClusterError, match="slurmctld exited"):
+        with single_node_cluster(tmp_path / "cluster", start_timeout=30):
+            pytest.fail("the cluster came up without slurmctld")
+    assert [d.name for d in started] == ["munged", "slurmctld"]
+    assert all(d.proc.returncode is not None and not pid_alive(d.pid) for d in started)
+    assert not (tmp_path / "cluster" / "munge" / "munge.socket").exists()

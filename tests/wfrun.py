@@ -1,0 +1,33 @@
+"""Support for tests that run the Snakemake workflow (imported by conftest.py and test modules).
+
+Every run uses a temporary working directory with the repository's ``Snakefile``; nothing is
+written into the repository.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEFILE = REPO / "Snakefile"
+QUICK = REPO / "config" / "quick.yaml"
+
+
+def snakemake_cli(*args, cwd, timeout=300, env=None):
+    """Run the Snakemake CLI on the repository's Snakefile in ``cwd``; return the process."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
+    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout,
+                          env=dict(env if env is not None else os.environ))
+
+
+def run_quick(workdir, *extra, timeout=900):
+    """Run the quick config to completion in ``workdir``; return (process, seconds)."""
+    t0 = time.perf_counter()
+    proc = snakemake_cli("--cores", 2, "--configfile", QUICK, *extra, cwd=workdir, timeout=timeout)
+    dt = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return proc, dt

@@ -1,0 +1,311 @@
+"""Per-tree observables for the diagnosis: the study's metrics plus pulse-level, stratified ones.
+
+Every observable is computed the same way for a real recording and for a simulation, from the
+points that :func:`label_trees` gives each tree (the points within the extraction radius of the
+tree's TLS points, as the study extracted its reference clouds) and from the ground returns in
+the column under the tree's crown.
+
+Observables (columns of :func:`tree_features`):
+
+* the study's metrics ``height``, ``hmean``, ``p10``, ``p50``, ``p90``, ``p99``, ``cbh``,
+  ``cpa``, ``multi_return_pct`` (:mod:`vlsforest.metrics`, heights above the stem base);
+* ``returns_per_pulse`` — returns of the tree per pulse that hit it (pulses: GPS time + source id);
+* ``rn1_share``, ``rn2_share``, ``rn3plus_share`` — return-number distribution (% of returns);
+* ``first_p50``, ``first_p90``, ``first_max`` — heights of first returns;
+* ``interecho_median``, ``interecho_p10``, ``interecho_short_pct`` — 3-D distance between
+  consecutive echoes of one pulse within the tree, and the % of those below
+  :data:`SHORT_ECHO_M` (the dead zone's cut-off shows here);
+* ``multi_pct_nadir`` / ``multi_pct_offnadir`` and ``rpp_nadir`` / ``rpp_offnadir`` — multiple
+  returns and returns per pulse in two scan-angle strata (|angle| < :data:`ANGLE_SPLIT_DEG` and
+  above);
+* ``crown_extent_ratio`` — crown extent along x over extent along y (5–95 % range of the points
+  at or above CBH; directional footprints stretch crowns one way);
+* ``ground_share_pct`` — % of returns in the crown column that are ground returns;
+* ``ground_sd_local`` — SD of ground returns about a local plane fitted per 1 m cell and flight
+  line (range noise thickens it);
+* ``ground_dz_lines`` — median absolute offset between the ground of two flight lines in the
+  same 1 m cell (trajectory errors move whole strips);
+* ``int_p01_rel``, ``int_p05_rel`` — the 1st and 5th percentile of the tree's echo intensities
+  divided by the 10th: scale-free (real intensities are rarely calibrated, and a reflectance
+  change scales them all), but a detection threshold cuts the weak end and raises them;
+* ``int_floor`` — the 0.1 % percentile of the intensities: where a detection threshold cuts, it
+  *is* the threshold (in the simulator's amplitude units), whatever the voxel model.
+
+Missing values (too few points in a stratum) are NaN and are left out of every statistic.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vlsforest.errors import InputDataError
+
+#: scan-angle split between the nadir and the off-nadir stratum (degrees)
+ANGLE_SPLIT_DEG = 15.0
+#: inter-echo distances below this count as "short" (m)
+SHORT_ECHO_M = 1.0
+#: the study's metrics used as observables
+STUDY_METRICS = ("height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "multi_return_pct")
+#: every observable, in column order
+FEATURES = STUDY_METRICS + (
+    "returns_per_pulse", "rn1_share", "rn2_share", "rn3plus_share",
+    "first_p50", "first_p90", "first_max",
+    "interecho_median", "interecho_p10", "interecho_short_pct",
+    "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
+    "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
+    "int_p01_rel", "int_p05_rel", "int_floor",
+)
+#: the stratum each observable describes (for the located mismatches, in words)
+STRATUM = {
+    **{m: "whole tree" for m in STUDY_METRICS},
+    "returns_per_pulse": "pulses", "rn1_share": "return number 1", "rn2_share": "return number 2",
+    "rn3plus_share": "return number ≥ 3", "first_p50": "first returns", "first_p90": "first returns",
+    "first_max": "first returns (tree top)", "interecho_median": "echo pairs of a pulse",
+    "interecho_p10": "echo pairs of a pulse", "interecho_short_pct": f"echo pairs < {SHORT_ECHO_M:g} m",
+    "multi_pct_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "multi_pct_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
+    "rpp_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "rpp_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
+    "crown_extent_ratio": "crown (along x / along y)", "ground_share_pct": "ground under the crown",
+    "ground_sd_local": "ground under the crown", "ground_dz_lines": "ground under the crown, between flight lines",
+    "int_p01_rel": "weakest echoes (intensity / its 10th percentile)",
+    "int_p05_rel": "weak echoes (intensity / its 10th percentile)",
+    "int_floor": "weakest detected echoes (0.1 % intensity)",
+}
+_MIN_PULSES = 10
+
+
+def cloud_arrays(cloud) -> dict:
+    """The per-point arrays the observables need, from a PointCloud or a simulation result.
+
+    Parameters
+    ----------
+    cloud : vlsforest.io.las.PointCloud or vlsforest.sim.SimulationResult
+
+    Returns
+    -------
+    dict of ndarray
+        ``xyz``, ``return_number``, ``number_of_returns``, ``gps_time``, ``point_source_id``,
+        ``scan_angle``, ``classification``, ``intensity`` (NaN when absent).
+    """
+    if hasattr(cloud, "points") and isinstance(cloud.points, dict):  # SimulationResult
+        p = cloud.points
+        get = p.__getitem__
+        xyz = np.asarray(p["xyz"], dtype=np.float64)
+        has = p.__contains__
+    else:
+        xyz = np.asarray(cloud.xyz, dtype=np.float64)
+        get = cloud.attrs.__getitem__
+        has = cloud.attrs.__contains__
+    need = ("return_number", "number_of_returns", "gps_time", "point_source_id", "scan_angle")
+    missing = [k for k in need if not has(k)]
+    if missing:
+        raise InputDataError(f"the point cloud lacks {', '.join(missing)} (needed to identify pulses)")
+    out = {"xyz": xyz}
+    for k in need:
+        out[k] = np.asarray(get(k))
+    out["classification"] = (np.asarray(get("classification")) if has("classification")
+                             else np.zeros(len(xyz), np.uint8))
+    out["intensity"] = (np.asarray(get("intensity"), np.float64) if has("intensity")
+                        else np.full(len(xyz), np.nan))
+    if not np.isfinite(xyz).all():
+        raise InputDataError("the point cloud holds NaN or infinite coordinates")
+    return out
+
+
+def label_trees(arrays: dict, tree_points: dict, radius: float) -> np.ndarray:
+    """Tree id per point: the nearest tree whose TLS points lie within ``radius`` (0 = none)."""
+    from vlsforest.extract import extract_reference
+    from vlsforest.io.las import PointCloud
+
+    return extract_reference(tree_points, PointCloud(arrays["xyz"], {}), radius)
+
+
+def _pulse_key(a: dict, idx: np.ndarray) -> np.ndarray:
+    """Integer pulse key per point (GPS time and source id)."""
+    t = np.round(np.asarray(a["gps_time"][idx], np.float64) * 1e7).astype(np.int64)
+    s = np.asarray(a["point_source_id"][idx], np.int64)
+    return t * 1024 + s
+
+
+def _pct(x, q):
+    return float(np.percentile(x, q)) if len(x) else np.nan
+
+
+def _multi_and_rpp(key, nret):
+    """% of pulses with > 1 return and returns per pulse, from per-point pulse keys."""
+    if len(key) == 0:
+        return np.nan, np.nan
+    uk, first = np.unique(key, return_index=True)
+    if len(uk) < _MIN_PULSES:
+        return np.nan, np.nan
+    return 100.0 * float(np.mean(nret[first] > 1)), len(key) / len(uk)
+
+
+def _interecho(xyz, key, rn):
+    order = np.lexsort((rn, key))
+    k, p = key[order], xyz[order]
+    same = k[1:] == k[:-1]
+    if not same.any():
+        return np.array([])
+    return np.linalg.norm(p[1:][same] - p[:-1][same], axis=1)
+
+
+def _ground_stats(xyz, line, cell=1.0):
+    """(local SD about per-cell planes, median |offset| between flight lines) of ground returns.
+
+    Per 1 m cell and flight line with ≥ 5 returns a plane z = a + b·dx + c·dy is fitted by least
+    squares (from per-group sums, vectorised); the SD pools the residuals (corrected for the 3
+    fitted parameters); the offset compares the planes' heights at the cell centre between lines.
+    """
+    if len(xyz) < 20:
+        return np.nan, np.nan
+    ij = np.floor(xyz[:, :2] / cell).astype(np.int64)
+    centre = (ij + 0.5) * cell
+    dx, dy = xyz[:, 0] - centre[:, 0], xyz[:, 1] - centre[:, 1]
+    z = xyz[:, 2]
+    key = np.stack([ij[:, 0], ij[:, 1], np.asarray(line, np.int64)], axis=1)
+    groups, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    g = len(groups)
+
+    def s(v):
+        return np.bincount(inv, weights=v, minlength=g)
+
+    n = cnt.astype(float)
+    sx, sy, sz = s(dx), s(dy), s(z)
+    sxx, sxy, syy, sxz, syz, szz = s(dx * dx), s(dx * dy), s(dy * dy), s(dx * z), s(dy * z), s(z * z)
+    A = np.stack([np.stack([n, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], 1)
+    rhs = np.stack([sz, sxz, syz], -1)
+    ok = cnt >= 5
+    ok &= np.abs(np.linalg.det(np.where(ok[:, None, None], A, np.eye(3)))) > 1e-9
+    if not ok.any():
+        return np.nan, np.nan
+    coef = np.linalg.solve(A[ok], rhs[ok][..., None])[..., 0]
+    sse = szz[ok] - np.sum(coef * rhs[ok], axis=1)
+    dof = n[ok] - 3
+    sd = float(np.sqrt(max(np.sum(np.maximum(sse, 0.0)) / np.sum(dof), 0.0))) if np.sum(dof) > 0 else np.nan
+    cells = groups[ok][:, :2]
+    height = coef[:, 0]
+    order = np.lexsort((cells[:, 1], cells[:, 0]))
+    cells, height = cells[order], height[order]
+    diffs = []
+    same = np.r_[True, np.any(cells[1:] != cells[:-1], axis=1), True]
+    bounds = np.flatnonzero(same)
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a > 1:
+            h = height[a:b]
+            diffs.append(np.abs(np.subtract.outer(h, h))[np.triu_indices(b - a, 1)])
+    dz = float(np.median(np.concatenate(diffs))) if diffs else np.nan
+    return sd, dz
+
+
+def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.DataFrame:
+    """Observables of every tree (rows) — see the module docstring for the columns.
+
+    Parameters
+    ----------
+    arrays : dict
+        From :func:`cloud_arrays`.
+    labels : ndarray of int
+        Tree id per point (:func:`label_trees`).
+    trees : pandas.DataFrame
+        One row per tree with ``tree_id``, stem base ``x``, ``y``, ``z`` and ``crown_radius``
+        (m; the column under the crown for the ground observables).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index ``tree_id``, columns :data:`FEATURES`; NaN where a tree has too few points.
+    """
+    from vlsforest.metrics import tree_metrics
+
+    xyz = arrays["xyz"]
+    n = len(xyz)
+    if len(labels) != n:
+        raise InputDataError(f"{len(labels)} labels for {n} points")
+    rows = []
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="left")
+    ends = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="right")
+    gsel = arrays["classification"] == 2
+    gxyz = xyz[gsel]
+    gline = np.asarray(arrays["point_source_id"])[gsel]
+    allxy = xyz[:, :2]
+    for (_, t), b, e in zip(trees.iterrows(), bounds, ends):
+        idx = order[b:e]
+        row = {"tree_id": int(t.tree_id)}
+        if len(idx) < 20:
+            rows.append(row)
+            continue
+        p = xyz[idx]
+        rn = np.asarray(arrays["return_number"][idx], np.int64)
+        nret = np.asarray(arrays["number_of_returns"][idx], np.int64)
+        ang = np.abs(np.asarray(arrays["scan_angle"][idx], np.float64))
+        key = _pulse_key(arrays, idx)
+        m = tree_metrics(p, ground_z=float(t.z), return_number=rn, number_of_returns=nret,
+                         gps_time=arrays["gps_time"][idx], point_source_id=arrays["point_source_id"][idx])
+        row.update({k: float(m[k]) for k in STUDY_METRICS})
+        _, row["returns_per_pulse"] = _multi_and_rpp(key, nret)
+        for name, sel in (("rn1_share", rn == 1), ("rn2_share", rn == 2), ("rn3plus_share", rn >= 3)):
+            row[name] = 100.0 * float(sel.mean())
+        hf = p[rn == 1, 2] - float(t.z)
+        row["first_p50"], row["first_p90"] = _pct(hf, 50), _pct(hf, 90)
+        row["first_max"] = float(hf.max()) if len(hf) else np.nan
+        inten = arrays["intensity"][idx]
+        if np.isfinite(inten).all():
+            row["int_floor"] = _pct(inten, 0.1)
+            p10 = _pct(inten, 10)
+            if p10 > 0:
+                row["int_p01_rel"], row["int_p05_rel"] = _pct(inten, 1) / p10, _pct(inten, 5) / p10
+        ie = _interecho(p, key, rn)
+        if len(ie) >= 10:
+            row["interecho_median"], row["interecho_p10"] = _pct(ie, 50), _pct(ie, 10)
+            row["interecho_short_pct"] = 100.0 * float(np.mean(ie < SHORT_ECHO_M))
+        for suffix, sel in (("nadir", ang < ANGLE_SPLIT_DEG), ("offnadir", ang >= ANGLE_SPLIT_DEG)):
+            row[f"multi_pct_{suffix}"], row[f"rpp_{suffix}"] = _multi_and_rpp(key[sel], nret[sel])
+        crown = p[p[:, 2] - float(t.z) >= row["cbh"]] if np.isfinite(row["cbh"]) else p
+        if len(crown) >= 10:
+            ex = np.percentile(crown[:, 0], 95) - np.percentile(crown[:, 0], 5)
+            ey = np.percentile(crown[:, 1], 95) - np.percentile(crown[:, 1], 5)
+            row["crown_extent_ratio"] = float(ex / ey) if ey > 0 else np.nan
+        r2 = float(t.crown_radius) ** 2
+        col = np.sum((allxy - [t.x, t.y]) ** 2, axis=1) <= r2
+        if col.sum() >= 20:
+            row["ground_share_pct"] = 100.0 * float(np.mean(arrays["classification"][col] == 2))
+        gcol = np.sum((gxyz[:, :2] - [t.x, t.y]) ** 2, axis=1) <= (float(t.crown_radius) + 2.0) ** 2
+        row["ground_sd_local"], row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])
+        rows.append(row)
+    df = pd.DataFrame(rows).set_index("tree_id")
+    return df.reindex(columns=list(FEATURES)).astype(float)
+
+
+def tree_table(tree_points: dict, stems: pd.DataFrame) -> pd.DataFrame:
+    """Trees for :func:`tree_features` from segmented TLS trees.
+
+    Parameters
+    ----------
+    tree_points : dict int → ndarray (m, 3)
+        TLS points of each tree.
+    stems : pandas.DataFrame
+        The segmentation's tree table (``tree_id``, ``x``, ``y``, ``z``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``tree_id``, ``x``, ``y``, ``z``, ``crown_radius`` (half the mean horizontal 5–95 %
+        extent of the tree's TLS points more than 2 m above its base, at least 1 m).
+    """
+    rows = []
+    for _, s in stems.sort_values("tree_id").iterrows():
+        tid = int(s.tree_id)
+        if tid not in tree_points:
+            continue
+        p = np.asarray(tree_points[tid])
+        up = p[p[:, 2] > float(s.z) + 2.0]
+        if len(up) < 10:
+            r = 1.0
+        else:
+            ext = np.percentile(up[:, :2], 95, axis=0) - np.percentile(up[:, :2], 5, axis=0)
+            r = max(1.0, float(ext.mean()) / 2.0)
+        rows.append({"tree_id": tid, "x": float(s.x), "y": float(s.y), "z": float(s.z), "crown_radius": r})
+    return pd.DataFrame(rows, columns=["tree_id", "x", "y", "z", "crown_radius"])

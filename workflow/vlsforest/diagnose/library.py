@@ -1,0 +1,185 @@
+"""The library of candidate physics: each a switch plus parameter(s) of the simulator.
+
+A candidate's ids and parameters are those of the recording-physics YAML
+(``vlsforest synth --recording-physics``), so any candidate can be hidden in "real" data and
+modelled by the diagnosis with the same meaning. Baselines come from the survey being
+diagnosed (the study's simulation setting: circular beam, no threshold, no noise, …).
+
+========================  ======================  ===========  ==============  =====================
+id                        parameter(s)            group        render          prior range
+========================  ======================  ===========  ==============  =====================
+``beam_divergence``       ``scale``               footprint    re-trace        0.5 – 4
+``elliptical_footprint``  ``major_mrad``,         footprint    re-trace        major 1 – 6 × minor;
+                          ``minor_mrad`` (FWHM)                                minor 0.3 – 3 × base
+``detection_threshold``   ``min_energy``          link budget  stored hits     0 – 1e5 (amplitude)
+``reflectance``           ``scale`` (all parts)   link budget  stored hits     0.2 – 2
+``waveform_window``       ``window_ns``           dead zone    stored hits     0.5 – 6 ns
+``max_returns``           ``n``                   dead zone    stored hits     1 – 7
+``range_noise``           ``sigma_m``             noise        stored hits     0 – 0.25 m
+``trajectory_noise``      ``position_sigma_m``    noise        re-trace        0 – 0.3 m
+========================  ======================  ===========  ==============  =====================
+
+Groups are the declared look-alikes on tree metrics; within a group the diagnosis names the
+observables that separate the members (:data:`TIE_BREAKERS`).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlsforest.errors import ConfigError
+
+from vlsforest.sim.scanner import fwhm_to_1e2
+
+#: FWHM → 1/e² full-width factor of a Gaussian beam (√(2 / ln 2) ≈ 1.699)
+_FWHM_TO_1E2 = float(fwhm_to_1e2(1.0))
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of a candidate: bounds, a reference perturbation and a grid scale."""
+
+    name: str
+    lo: float
+    hi: float
+    delta: float            # reference perturbation (added, or a factor when log=True; from 0: added)
+    log: bool = False
+    integer: bool = False
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A physics candidate (see the module table)."""
+
+    name: str
+    params: tuple
+    group: str
+    render: str             # "hits" (re-detection of stored sub-ray hits) or "trace"
+    description: str
+
+    def baseline(self, survey: dict) -> dict:
+        """The parameter values the survey already simulates."""
+        from vlsforest.sim.scanner import PRESETS
+
+        ov = survey.get("overrides") or {}
+        pre = PRESETS[survey["scanner"]]
+        div = ov.get("beam_divergence_mrad", pre.beam_divergence_mrad)
+        div = (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
+        tn = survey.get("trajectory_noise") or {}
+        return {
+            "beam_divergence": {"scale": 1.0},
+            "elliptical_footprint": {"major_mrad": div[0] / _FWHM_TO_1E2, "minor_mrad": div[1] / _FWHM_TO_1E2},
+            "detection_threshold": {"min_energy": float(ov.get("min_energy", pre.min_energy))},
+            "reflectance": {"scale": 1.0},
+            "waveform_window": {"window_ns": float(ov.get("window_size_ns", pre.window_size_ns))},
+            "max_returns": {"n": float(ov.get("max_returns", pre.max_returns) or 7)},
+            "range_noise": {"sigma_m": float(ov.get("range_noise_m", pre.range_noise_m))},
+            "trajectory_noise": {"position_sigma_m": float(tn.get("position_sigma_m", 0.0))},
+        }[self.name]
+
+    def bounds(self, survey: dict) -> dict:
+        """Bounds per parameter (absolute units) for this survey."""
+        base = self.baseline(survey)
+        out = {}
+        for p in self.params:
+            if self.name == "elliptical_footprint":
+                b = base[p.name]
+                out[p.name] = (p.lo * b, p.hi * b)
+            else:
+                out[p.name] = (p.lo, p.hi)
+        return out
+
+    def perturbed(self, survey: dict) -> dict:
+        """The reference perturbation of the baseline (for the signature)."""
+        base = self.baseline(survey)
+        val = dict(base)
+        for p in self.params[:1]:
+            b = base[p.name]
+            v = b * p.delta if p.log else b + p.delta
+            lo, hi = self.bounds(survey)[p.name]
+            val[p.name] = float(np.clip(v, lo, hi))
+        return val
+
+    def apply(self, survey: dict, values: dict) -> tuple[dict, float]:
+        """A copy of ``survey`` with the candidate set to ``values``; also the reflectance factor.
+
+        Returns
+        -------
+        (dict, float)
+            The modified survey mapping and the factor applied to every part's reflectance
+            (1 unless this is the ``reflectance`` candidate).
+        """
+        from vlsforest.sim.scanner import PRESETS
+
+        s = copy.deepcopy(survey)
+        ov = dict(s.get("overrides") or {})
+        pre = PRESETS[s["scanner"]]
+        refl = 1.0
+        if self.name == "beam_divergence":
+            div = ov.get("beam_divergence_mrad", pre.beam_divergence_mrad)
+            div = (div, div) if np.isscalar(div) else div
+            ov["beam_divergence_mrad"] = [float(div[0]) * values["scale"], float(div[1]) * values["scale"]]
+        elif self.name == "elliptical_footprint":
+            ov["beam_divergence_mrad"] = [values["major_mrad"] * _FWHM_TO_1E2, values["minor_mrad"] * _FWHM_TO_1E2]
+            ov["beam_orientation_deg"] = 0.0
+        elif self.name == "detection_threshold":
+            ov["min_energy"] = float(values["min_energy"])
+        elif self.name == "reflectance":
+            refl = float(values["scale"])
+        elif self.name == "waveform_window":
+            ov["window_size_ns"] = float(values["window_ns"])
+        elif self.name == "max_returns":
+            ov["max_returns"] = int(round(values["n"]))
+        elif self.name == "range_noise":
+            ov["range_noise_m"] = float(values["sigma_m"])
+        elif self.name == "trajectory_noise":
+            tn = dict(s.get("trajectory_noise") or {})
+            tn["position_sigma_m"] = float(values["position_sigma_m"])
+            tn.setdefault("correlation_s", 2.0)
+            s["trajectory_noise"] = tn
+        s["overrides"] = ov
+        return s, refl
+
+
+CANDIDATES = {c.name: c for c in (
+    Candidate("beam_divergence", (Param("scale", 0.5, 4.0, 1.7, log=True),), "footprint", "trace",
+              "beam divergence (footprint size) differs from the simulated one"),
+    Candidate("elliptical_footprint", (Param("major_mrad", 1.0, 6.0, 3.0, log=True),
+                                       Param("minor_mrad", 0.3, 3.0, 1.0, log=True)), "footprint", "trace",
+              "an elliptical beam (major × minor divergence at FWHM) instead of a circular one"),
+    Candidate("detection_threshold", (Param("min_energy", 0.0, 1.0e5, 5000.0, log=True),), "link budget", "hits",
+              "weak echoes below a minimum energy are not detected"),
+    Candidate("reflectance", (Param("scale", 0.2, 2.0, 0.5, log=True),), "link budget", "hits",
+              "target reflectance at the scanner wavelength differs (all parts scaled)"),
+    Candidate("waveform_window", (Param("window_ns", 0.5, 6.0, 1.5),), "dead zone", "hits",
+              "a longer peak-detection window (dead zone between echoes of a pulse)"),
+    Candidate("max_returns", (Param("n", 1.0, 7.0, -2.0, integer=True),), "dead zone", "hits",
+              "the receiver reports fewer returns per pulse"),
+    Candidate("range_noise", (Param("sigma_m", 0.0, 0.25, 0.05),), "noise", "hits",
+              "random range error of each echo"),
+    Candidate("trajectory_noise", (Param("position_sigma_m", 0.0, 0.3, 0.05),), "noise", "trace",
+              "time-correlated position errors of the platform (GNSS/INS)"),
+)}
+
+#: observables that separate the members of a group (named in the report when a group ties)
+TIE_BREAKERS = {
+    "footprint": ("crown_extent_ratio", "multi_pct_nadir", "multi_pct_offnadir"),
+    "link budget": ("int_floor", "int_p01_rel", "int_p05_rel", "first_max"),
+    "dead zone": ("interecho_p10", "interecho_short_pct", "rn3plus_share"),
+    "noise": ("ground_sd_local", "ground_dz_lines"),
+}
+
+
+def select(names=None) -> list[Candidate]:
+    """Candidates by id (all by default); unknown ids raise ConfigError."""
+    if names is None:
+        return list(CANDIDATES.values())
+    out = []
+    for n in names:
+        if n not in CANDIDATES:
+            raise ConfigError(f"unknown physics candidate {n!r} (known: {', '.join(CANDIDATES)})")
+        out.append(CANDIDATES[n])
+    return out
