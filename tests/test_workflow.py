@@ -444,7 +444,7 @@ def test_report_html_embeds_every_figure_with_data(quick_run, tmp_path):
     import matplotlib.image as mpimg
 
     workdir, _, _ = quick_run
-    report = workdir / "results" / "report.html"
+    report = tmp_path / "report.html"  # outside the shared run's results/ (compared by other tests)
     proc = _snakemake("--configfile", QUICK, "--report", report, cwd=workdir)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
     html = report.read_text()

@@ -330,3 +330,60 @@ def simulate_mem_mb(wildcards, attempt):
 def simulate_runtime(wildcards, attempt):
     """Wall time (minutes) of a simulation job, doubled per retry."""
     return 120 * attempt
+
+
+# ---------------------------------------------------------------------------------------------
+# Diagnosis (workflow/rules/diagnose.smk)
+# ---------------------------------------------------------------------------------------------
+def diagnosis_cfg():
+    return config.get("diagnosis") or {}
+
+
+def diagnosis_scenarios():
+    d = diagnosis_cfg()
+    if not d.get("enabled", False):
+        return []
+    return [s for s in d.get("scenarios", SCENARIOS) if s in SCENARIOS]
+
+
+def diagnosis_plots():
+    return [p for p in (diagnosis_cfg().get("plots") or PLOTS) if p in PLOTS]
+
+
+def diagnosis_inputs(wildcards):
+    method = diagnosis_cfg().get("method", "scaled")
+    rec = recording_of(wildcards.scenario)
+    out = {}
+    for plot in diagnosis_plots():
+        out[f"scene_{plot}"] = f"results/{plot}/{method}/scene"
+        out[f"survey_{plot}"] = f"results/{plot}/surveys/{wildcards.scenario}.yaml"
+        out[f"segment_{plot}"] = f"results/{plot}/segment"
+        # a virtual plot's recording lies inside the forest folder (a directory output)
+        out[f"real_{plot}"] = "results/forest" if is_virtual(plot) else _plot_path(plot, "recording", rec)
+    return out
+
+
+def diagnosis_param(wildcards):
+    """The sim-config of one scenario (everything the diagnosis reads), as JSON."""
+    d = diagnosis_cfg()
+    method = d.get("method", "scaled")
+    sc = config["scenarios"][wildcards.scenario]
+    setup = {
+        "scenario": wildcards.scenario,
+        "seed": config["seed"],
+        "folds": d.get("folds", 3),
+        "grid": d.get("grid", 7),
+        "candidates": d.get("candidates") or None,
+        "plots": {
+            plot: {
+                "real": _plot_path(plot, "recording", recording_of(wildcards.scenario)),
+                "scene": f"results/{plot}/{method}/scene/scene.yaml",
+                "survey": f"results/{plot}/surveys/{wildcards.scenario}.yaml",
+                "segment": f"results/{plot}/segment",
+                "radius": sc.get("extraction_radius_m", 0.5),
+                "margin": config["simulation"]["region_margin_m"],
+            }
+            for plot in diagnosis_plots()
+        },
+    }
+    return json.dumps({k: v for k, v in setup.items() if v is not None}, sort_keys=True)

@@ -19,8 +19,12 @@ def register(sub) -> None:
                     "accepted, verdict, …).")
     p.add_argument("--real", required=True, metavar="DIR",
                    help="folder with the real recordings, DIR/<plot>/<recording>.laz (e.g. results/forest/plots)")
-    p.add_argument("--sim-config", required=True, metavar="FILE",
-                   help="YAML naming per plot the scene, survey, segmentation folder and extraction radius")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--sim-config", metavar="FILE",
+                     help="YAML naming per plot the scene, survey, segmentation folder and extraction radius")
+    src.add_argument("--sim-config-json", metavar="JSON", help="the same as one JSON string (the workflow's way)")
+    p.add_argument("--write-sim-config", metavar="FILE", default=None,
+                   help="also write the set-up as YAML (to rerun with --sim-config)")
     p.add_argument("--scenario", required=True, choices=("als", "uls"))
     p.add_argument("-o", "--output", required=True, metavar="OUT.json")
     p.add_argument("--figure", default=None, metavar="PNG", help="also draw the residuals before/after")
@@ -32,7 +36,23 @@ def run(args) -> int:
     """Execute ``vlsforest diagnose``."""
     from vlsforest.diagnose import diagnose, load_setup
 
-    setup = load_setup(args.sim_config, real_dir=args.real, scenario=args.scenario)
+    if args.sim_config_json is not None:
+        from vlsforest.errors import ConfigError
+
+        try:
+            source = json.loads(args.sim_config_json)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--sim-config-json: not valid JSON ({exc})") from None
+    else:
+        source = args.sim_config
+    setup = load_setup(source, real_dir=args.real, scenario=args.scenario)
+    if args.write_sim_config:
+        import yaml
+
+        d = json.loads(args.sim_config_json) if args.sim_config_json is not None else \
+            yaml.safe_load(Path(args.sim_config).read_text())
+        Path(args.write_sim_config).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.write_sim_config).write_text(yaml.safe_dump(d, sort_keys=True))
     rep = diagnose(setup, log=(lambda m: None) if args.quiet else None)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)

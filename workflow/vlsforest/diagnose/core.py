@@ -85,7 +85,7 @@ class Setup:
 
 
 def load_setup(path, real_dir=None, scenario=None) -> Setup:
-    """Read a sim-config YAML.
+    """Read a sim-config YAML (or take the same as a mapping).
 
     Format::
 
@@ -104,13 +104,16 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
 
     Relative paths are taken from the current directory.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such sim-config file")
-    try:
-        d = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+    if isinstance(path, dict):
+        d, path = path, "sim-config"
+    else:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such sim-config file")
+        try:
+            d = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML: {exc}") from None
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
     known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects"}
