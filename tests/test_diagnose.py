@@ -213,6 +213,10 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                            "-o", str(tmp_path / "o.json")], capture_output=True, text=True)
     assert proc.returncode != 0 and "no such sim-config file" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "o.json").exists()
+    proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
+                           "--sim-config-json", "{plots: [", "--scenario", "uls", "-o", str(tmp_path / "o.json")],
+                          capture_output=True, text=True)
+    assert proc.returncode != 0 and "not valid JSON" in proc.stderr and "Traceback" not in proc.stderr
 
 
 # ------------------------------------------------------------------------------------ end to end
