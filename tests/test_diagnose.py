@@ -370,3 +370,28 @@ def test_logic_null_and_out_of_library_are_not_attributed(monkeypatch):
 def test_logic_finds_two_hidden_effects(monkeypatch):
     rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.08}, "waveform_window": {"window_ns": 3.5}}))
     assert set(rep["accepted"]) == {"range_noise", "waveform_window"}, rep["verdict"]
+
+
+def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved():
+    from vlsforest.diagnose.core import _tie_break
+
+    nf = len(FEATURES)
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=nf)
+    tb = [FEATURES.index(f) for f in lib.TIE_BREAKERS["footprint"]]
+    ell = base.copy()
+    ell[tb] = [2.0, 1.0, -1.0]
+    div = base.copy()
+    div[tb] = [0.0, 1.0, -1.0]
+    D = np.tile(ell, (12, 1)) + 0.01 * rng.normal(size=(12, nf))  # the residual looks like the ellipse
+    w = np.ones(nf)
+    ranked = [{"name": "beam_divergence", "group": "footprint", "score": 0.80},
+              {"name": "elliptical_footprint", "group": "footprint", "score": 0.75}]
+    cosm = {(a, b): 0.5 for a in ("beam_divergence", "elliptical_footprint") for b in ("beam_divergence", "elliptical_footprint")}
+    out, note = _tie_break(ranked, {"beam_divergence": div, "elliptical_footprint": ell}, cosm, D, w)
+    assert note["resolved"] and note["winner"] == "elliptical_footprint" and out[0]["name"] == "elliptical_footprint"
+    same = {"beam_divergence": ell * 0.999, "elliptical_footprint": ell}
+    ranked = [{"name": "elliptical_footprint", "group": "footprint", "score": 0.80},
+              {"name": "beam_divergence", "group": "footprint", "score": 0.75}]
+    out, note = _tie_break(ranked, same, cosm, D, w)
+    assert not note["resolved"] and note["winner"] == "beam_divergence" and "not separated" in note["text"]

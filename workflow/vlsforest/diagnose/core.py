@@ -14,13 +14,15 @@ Steps (see the README section "Diagnosis"):
    Beta(½, (m − 1)/2) for m observables and K candidates) and pass a matched-filter test
    across trees (Bonferroni over candidates). Members of a declared
    group (or signatures with |cos| > 0.9) that score within 0.1 of each other tie; the tie is
-   broken on the group's separating observables and the report names them.
+   broken on the group's separating observables and the report names them — or, when those do
+   not separate the members either (explained fractions within 0.05), the report says so and the
+   simplest member is fitted on behalf of the group.
 3. **Model** — the winner's parameter(s) are fitted on a grid (one simulation per grid point,
    shared by all folds; two-parameter candidates by coordinate search): each observable whose
    mean residual changes sign along the grid votes for its crossing, and the weighted median of
    the votes is the estimate (:func:`.stats.robust_fit`; observables dominated by errors the
-   candidate cannot remove do not vote); k-fold across trees: each fold's value is fitted on the other trees and simulated for
-   the held-out ones. The effect is accepted when the held-out per-tree error drops
+   candidate cannot remove do not vote); k-fold across trees: each fold's value is fitted on
+   the other trees and simulated for the held-out ones. The effect is accepted when the held-out per-tree error drops
    significantly (one-sided paired Wilcoxon); observables that get significantly worse (Holm)
    are named in the report and the verdict.
    Then a second effect is sought the same way on top of the first.
@@ -50,6 +52,7 @@ from vlsforest.errors import ConfigError, InputDataError
 ALPHA = 0.05
 PENALTY = 0.05          # explained-fraction penalty per parameter
 TIE_MARGIN = 0.10       # scores closer than this tie within a group
+TIE_RESOLVE = 0.05      # a tie is broken only if the separating observables differ by this much
 MIN_EV = 0.05           # a candidate must explain at least this share of the mean residual
 #                         (the reconstruction error of the voxel model is always there beside it)
 
@@ -340,9 +343,17 @@ def _tie_break(ranked, sigs, cosm, D0, w):
         _, ev, _ = st.project(rbar, sigs[r["name"]], w * mask)
         scored.append((ev, r["name"]))
     scored.sort(key=lambda x: -x[0])
-    winner = scored[0][1]
+    resolved = len(scored) < 2 or scored[0][0] - scored[1][0] >= TIE_RESOLVE
+    if resolved:
+        winner = scored[0][1]
+    else:  # the separating observables do not separate: the simplest member speaks for the group
+        winner = min((n for _, n in scored), key=lambda n: (len(lib.CANDIDATES[n].params), n != lead["name"]))
     note = {"group": lead["group"], "members": [n for _, n in scored], "tie_breakers": list(tb),
-            "explained_on_tie_breakers": {n: round(float(e), 3) for e, n in scored}, "winner": winner}
+            "explained_on_tie_breakers": {n: round(float(e), 3) for e, n in scored}, "winner": winner,
+            "resolved": bool(resolved),
+            "text": (f"{winner} wins the {lead['group']} group on {', '.join(tb)}" if resolved else
+                     f"the {lead['group']} group ({', '.join(n for _, n in scored)}) is not separated by "
+                     f"{', '.join(tb)}; the simplest member, {winner}, is fitted for the group")}
     if winner != lead["name"]:
         ranked = [r for r in ranked if r["name"] == winner] + [r for r in ranked if r["name"] != winner]
     return ranked, note
