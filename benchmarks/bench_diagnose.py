@@ -99,35 +99,34 @@ def main(argv=None) -> int:
             "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
             "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
         for case in cases:
-            for run in (0,):
-                forest = _record(seed, case, a.workdir)
-                setup = load_setup(cfg, real_dir=forest / "plots")
-                setup.oracle = CASES[case][1] or None
-                t0 = time.perf_counter()
-                rep = diagnose(setup, log=lambda m: None)
-                dt = time.perf_counter() - t0
-                top = rep["effects"][0] if rep["effects"] else {}
-                hidden = CASES[case][1]
-                fit_err = None
-                for name, vals in hidden.items():
-                    e = next((x for x in rep["effects"] if x["name"] == name and x.get("parameters")), None)
-                    if e:
-                        k = next(iter(vals))
-                        fit_err = abs(e["parameters"][k] - vals[k]) / abs(vals[k])
-                        break
-                o = rep.get("oracle") or {}
-                recov = (o["error_given"] - o["error_told_truth"]) if o else None
-                removed = None
-                first = next((e for e in rep["effects"] if e.get("accepted")), None)
-                if recov and first and first["heldout_error_before"] is not None:
-                    removed = (first["heldout_error_before"] - first["heldout_error_after"]) / recov
-                row = {"seed": seed, "case": case, "run": run, "verdict": rep["verdict"],
-                       "top": top.get("name"), "top_group": top.get("group"),
-                       "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
-                       "fit_rel_error": fit_err, "recoverable_removed": removed,
-                       "traced": rep["cost"]["traced_simulations"], "seconds": round(dt, 1)}
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+            forest = _record(seed, case, a.workdir)
+            setup = load_setup(cfg, real_dir=forest / "plots")
+            setup.oracle = CASES[case][1] or None
+            t0 = time.perf_counter()
+            rep = diagnose(setup, log=lambda m: None)
+            dt = time.perf_counter() - t0
+            top = rep["effects"][0] if rep["effects"] else {}
+            hidden = CASES[case][1]
+            fit_err = None
+            for name, vals in hidden.items():
+                e = next((x for x in rep["effects"] if x["name"] == name and x.get("parameters")), None)
+                if e:
+                    k = next(iter(vals))
+                    fit_err = abs(e["parameters"][k] - vals[k]) / abs(vals[k])
+                    break
+            o = rep.get("oracle") or {}
+            recov = (o["error_given"] - o["error_told_truth"]) if o else None
+            removed = None
+            first = next((e for e in rep["effects"] if e.get("accepted")), None)
+            if recov and first and first["heldout_error_before"] is not None:
+                removed = (first["heldout_error_before"] - first["heldout_error_after"]) / recov
+            row = {"seed": seed, "case": case, "verdict": rep["verdict"],
+                   "top": top.get("name"), "top_group": top.get("group"),
+                   "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
+                   "fit_rel_error": fit_err, "recoverable_removed": removed,
+                   "traced": rep["cost"]["traced_simulations"], "seconds": round(dt, 1)}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
     import pandas as pd
 
     df = pd.DataFrame(rows)

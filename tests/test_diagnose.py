@@ -185,6 +185,11 @@ def test_library_reads_baselines_and_applies_values():
     assert s["trajectory_noise"]["position_sigma_m"] == 0.04
     _, refl = c["reflectance"].apply(survey, {"scale": 0.5})
     assert refl == 0.5
+    # reference steps for the signatures: added, multiplied (log), from 0, reversed at a bound
+    assert c["waveform_window"].step({"window_ns": 1.5}, survey) == {"window_ns": 3.0}
+    assert c["beam_divergence"].step({"scale": 1.0}, survey) == {"scale": pytest.approx(1.7)}
+    assert c["detection_threshold"].step({"min_energy": 0.0}, survey) == {"min_energy": 5000.0}
+    assert c["beam_divergence"].step({"scale": 4.0}, survey) == {"scale": pytest.approx(4.0 / 1.7)}
     assert survey["overrides"] == {"window_size_ns": 1.5}  # the input is not modified
     # the candidate ids are the recording-physics keys of the virtual forest (same meaning)
     from vlsforest.synth.record import _CANDIDATES as recording_keys

@@ -187,6 +187,13 @@ class _PlotSim:
         self.scene = Scene.from_yaml(p.scene)
         real = read_las(p.real)
         self.real = self._features(cloud_arrays(real))
+        self._parts = {
+            "object_id": np.array([q.object_id for q in self.scene.parts]),
+            "classification": np.array([q.classification for q in self.scene.parts]),
+            "reflectance": np.array([q.material.reflectance for q in self.scene.parts]),
+            "specularity": np.array([q.material.specularity for q in self.scene.parts]),
+            "shininess": np.array([q.material.shininess for q in self.scene.parts]),
+        }
         self._traces: OrderedDict = OrderedDict()
         self.n_traced = 0
         self.n_redetected = 0
@@ -229,13 +236,7 @@ class _PlotSim:
         pulses, hits = self._traces[key]
         s, refl = self._survey_for(assign)
         sv = survey_from_dict(s, base_dir=self.survey_dir)
-        parts = {
-            "object_id": np.array([q.object_id for q in self.scene.parts]),
-            "classification": np.array([q.classification for q in self.scene.parts]),
-            "reflectance": np.array([q.material.reflectance for q in self.scene.parts]) * refl,
-            "specularity": np.array([q.material.specularity for q in self.scene.parts]),
-            "shininess": np.array([q.material.shininess for q in self.scene.parts]),
-        }
+        parts = dict(self._parts, reflectance=self._parts["reflectance"] * refl)
         res = redetect(parts, pulses, hits, sv, seed=self.seed)
         self.n_redetected += 1
         return self._features(cloud_arrays(res))
@@ -297,15 +298,9 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
     rows, sigs = [], {}
     for c in cands:
         cur = base.get(c.name, c.baseline(study.survey))
-        pert = dict(cur)
         p0 = c.params[0]
-        lo, hi = c.bounds(study.survey)[p0.name]
-        v = cur[p0.name] * p0.delta if p0.log else cur[p0.name] + p0.delta
-        if p0.log and cur[p0.name] <= 0:
-            v = p0.delta
-        pert[p0.name] = float(np.clip(v, lo, hi))
-        if pert[p0.name] == cur[p0.name]:  # at a bound: step the other way
-            pert[p0.name] = float(np.clip(cur[p0.name] / p0.delta if p0.log else cur[p0.name] - p0.delta, lo, hi))
+        lo = c.bounds(study.survey)[p0.name][0]
+        pert = c.step(cur, study.survey)
         S1 = study.sim(_merge(base, c.name, pert)).reindex(study.real.index).to_numpy(float)
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J

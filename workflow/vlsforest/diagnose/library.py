@@ -92,16 +92,19 @@ class Candidate:
                 out[p.name] = (p.lo, p.hi)
         return out
 
-    def perturbed(self, survey: dict) -> dict:
-        """The reference perturbation of the baseline (for the signature)."""
-        base = self.baseline(survey)
-        val = dict(base)
-        for p in self.params[:1]:
-            b = base[p.name]
-            v = b * p.delta if p.log else b + p.delta
-            lo, hi = self.bounds(survey)[p.name]
-            val[p.name] = float(np.clip(v, lo, hi))
-        return val
+    def step(self, current: dict, survey: dict) -> dict:
+        """``current`` with the first parameter moved by the reference perturbation (for the
+        signature): multiplied by ``delta`` for log parameters (set to it from 0), else added;
+        clipped to the bounds, and taken the other way when a bound blocks it."""
+        p = self.params[0]
+        lo, hi = self.bounds(survey)[p.name]
+        c = current[p.name]
+        v = (c * p.delta if c > 0 else p.delta) if p.log else c + p.delta
+        out = dict(current)
+        out[p.name] = float(np.clip(v, lo, hi))
+        if out[p.name] == c:
+            out[p.name] = float(np.clip(c / p.delta if p.log else c - p.delta, lo, hi))
+        return out
 
     def apply(self, survey: dict, values: dict) -> tuple[dict, float]:
         """A copy of ``survey`` with the candidate set to ``values``; also the reflectance factor.

@@ -173,7 +173,7 @@ def grid_minimum(x: np.ndarray, y: np.ndarray, lo: float, hi: float, log: bool =
     return float(x[k])
 
 
-def mde(J: np.ndarray, D: np.ndarray, w_unused=None, z: float = 2.8) -> float:
+def mde(J: np.ndarray, D: np.ndarray, z: float = 2.8) -> float:
     """Minimum detectable amplitude (in units of the reference perturbation) of a signature.
 
     Matched filter on the mean residual of ``n`` trees with the across-tree spread ``s_j``:
