@@ -177,14 +177,16 @@ def test_library_reads_baselines_and_applies_values():
     c = lib.CANDIDATES
     assert c["waveform_window"].baseline(survey) == {"window_ns": 1.5}
     assert c["detection_threshold"].baseline(survey) == {"min_energy": 0.0}
-    s, refl = c["beam_divergence"].apply(survey, {"scale": 2.0})
-    assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.0, 1.0]) and refl == 1.0
+    s, edits = c["beam_divergence"].apply(survey, {"scale": 2.0})
+    assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.0, 1.0]) and edits == {}
     s, _ = c["elliptical_footprint"].apply(survey, {"major_mrad": 1.6, "minor_mrad": 0.5})
     assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.6 * 1.6986, 0.5 * 1.6986], rel=1e-3)
     s, _ = c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.04})
     assert s["trajectory_noise"]["position_sigma_m"] == 0.04
-    _, refl = c["reflectance"].apply(survey, {"scale": 0.5})
-    assert refl == 0.5
+    assert c["reflectance"].apply(survey, {"scale": 0.5})[1] == {"reflectance_scale": 0.5}
+    assert c["incidence_reflectance"].apply(survey, {"specularity": 0.4})[1] == {"specularity": 0.4}
+    s, edits = c["tls_occlusion"].apply(survey, {"top_gain": 2.0})
+    assert edits == {"top_gain": 2.0} and s == survey
     # reference steps for the signatures: added, multiplied (log), from 0, reversed at a bound
     assert c["waveform_window"].step({"window_ns": 1.5}, survey) == {"window_ns": 3.0}
     assert c["beam_divergence"].step({"scale": 1.0}, survey) == {"scale": pytest.approx(1.7)}
@@ -194,7 +196,8 @@ def test_library_reads_baselines_and_applies_values():
     # the candidate ids are the recording-physics keys of the virtual forest (same meaning)
     from vlsforest.synth.record import _CANDIDATES as recording_keys
 
-    assert set(lib.CANDIDATES) - {"reflectance"} <= set(recording_keys)
+    # (reflectance: one scale here, per organ there; tls_occlusion: a model input, not recording physics)
+    assert set(lib.CANDIDATES) - {"reflectance", "tls_occlusion"} <= set(recording_keys)
     with pytest.raises(ConfigError, match="unknown physics candidate"):
         lib.select(["wind"])
 
@@ -311,6 +314,7 @@ class _LinearStudy:
     carry a reconstruction error (a systematic part + noise) beside any hidden effect."""
 
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
+    has_scaled = True
 
     def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5):
         rng = np.random.default_rng(seed)
@@ -320,7 +324,7 @@ class _LinearStudy:
         self.G = {name: rng.normal(size=nf) for name in lib.CANDIDATES}
         self.scale = {"beam_divergence": 1.0, "elliptical_footprint": 1.0, "detection_threshold": 1 / 5000,
                       "reflectance": 1.0, "waveform_window": 1.0, "max_returns": 1.0, "range_noise": 20.0,
-                      "trajectory_noise": 20.0}
+                      "trajectory_noise": 20.0, "incidence_reflectance": 3.0, "tls_occlusion": 1.0}
         self.G["elliptical_footprint"] = self.G["beam_divergence"] * 0.6 + 0.8 * rng.normal(size=nf)
         recon_err = recon * rng.normal(size=nf) + 0.7 * rng.normal(size=(n_trees, nf))
         self.index = pd.MultiIndex.from_product([["Q"], range(1, n_trees + 1)], names=["plot", "tree_id"])
@@ -356,6 +360,7 @@ def _run_logic(monkeypatch, study, seed=0):
     ("waveform_window", {"window_ns": 3.0}, "window_ns"),
     ("detection_threshold", {"min_energy": 12000.0}, "min_energy"),
     ("beam_divergence", {"scale": 1.8}, "scale"),
+    ("tls_occlusion", {"top_gain": 3.0}, "top_gain"),
 ])
 def test_logic_finds_and_fits_a_hidden_effect_beside_reconstruction_error(monkeypatch, name, values, key):
     rep = _run_logic(monkeypatch, _LinearStudy({name: values}))
@@ -370,6 +375,63 @@ def test_logic_null_and_out_of_library_are_not_attributed(monkeypatch):
     assert flagged <= 1
     rep = _run_logic(monkeypatch, _LinearStudy({}, out_of_library=3.0, seed=3))
     assert rep["significant_mismatch"] and rep["verdict"] == "mismatch found, not attributable"
+
+
+def test_tls_occlusion_needs_scaled_cubes(monkeypatch):
+    """Scenes of a fixed-size method: the candidate is left out of the default library, and
+    naming it explicitly is a configuration error."""
+    from vlsforest.diagnose import core
+
+    study = _LinearStudy({"range_noise": {"sigma_m": 0.06}})
+    study.has_scaled = False
+    rep = _run_logic(monkeypatch, study)
+    assert rep["accepted"][:1] == ["range_noise"]
+    assert all(r["name"] != "tls_occlusion" for rnd in rep["rounds"] for r in rnd["ranking"])
+    setup = core.Setup(scenario="uls", plots=[], candidates=["range_noise", "tls_occlusion"], candidates_given=True)
+    with pytest.raises(ConfigError, match="tls_occlusion corrects PAD-scaled"):
+        core.diagnose(setup, log=lambda m: None)
+
+
+def test_occlusion_correction_raises_upper_crown_cubes_within_their_cells():
+    from vlsforest.voxels import VoxelModel
+
+    size = 0.25
+    ijk = np.array([[0, 0, z] for z in range(9)])            # one column, centres z = 0.125 … 2.125
+    half = np.full(9, 0.05)
+    centre = (ijk + 0.5) * size
+    centre[:, 0] += size / 2 - half                          # pushed against the cell's +x face
+    m = VoxelModel(size, ijk, np.ones(9, int), half, centre, np.full(9, 1.0))
+    out = lib.occlusion_corrected(m, 3.0)
+    g = 1 + 3.0 * np.clip((centre[:, 2] - 1.125) / 1.0, 0, 1)   # mid 1.125, top 2.125
+    assert out.pad == pytest.approx(g)
+    assert out.half[:5] == pytest.approx(half[:5])             # lower half unchanged
+    assert out.half[-1] == pytest.approx(0.05 * 2.0)           # top: PAD × 4 → side × √4
+    assert out.half[6] == pytest.approx(0.05 * np.sqrt(g[6]))
+    lo = ijk * size
+    assert (out.centre - out.half[:, None] >= lo - 1e-12).all()
+    assert (out.centre + out.half[:, None] <= lo + size + 1e-12).all()
+    big = lib.occlusion_corrected(m, 100.0)
+    assert big.half.max() == pytest.approx(size / 2)           # capped at the cell
+    assert lib.occlusion_corrected(m, 0.0).half == pytest.approx(half)
+    with pytest.raises(ConfigError, match="fixed-size cubes"):
+        lib.occlusion_corrected(VoxelModel(size, ijk, np.ones(9, int)), 1.0)
+
+
+def test_occlusion_corrected_scene_is_what_gets_traced(tmp_path):
+    """The correction reaches the ray caster: a ray down onto a crown's top cube hits it higher
+    by the growth of its half side (Scene.from_yaml with a voxel transform)."""
+    from vlsforest.sim import Scene
+    from vlsforest.voxels import VoxelModel
+
+    ijk = np.array([[0, 0, 0], [0, 0, 4]])
+    VoxelModel(1.0, ijk, np.ones(2, int), np.array([0.2, 0.2]), (ijk + 0.5) * 1.0, np.ones(2)).save(tmp_path / "c.npz")
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump({"parts": [{"id": 2, "type": "voxels", "path": "c.npz"}]}))
+    o, d = np.array([[0.5, 0.5, 10.0]]), np.array([[0.0, 0.0, -1.0]])
+    t0 = Scene.from_yaml(tmp_path / "scene.yaml").trace(o, d)[0][0]
+    t1 = Scene.from_yaml(tmp_path / "scene.yaml",
+                         voxel_transform=lambda m: lib.occlusion_corrected(m, 3.0)).trace(o, d)[0][0]
+    assert t0 == pytest.approx(10.0 - 4.7, abs=1e-5)
+    assert t1 == pytest.approx(10.0 - 4.9, abs=1e-5)   # half 0.2 → 0.4 (PAD × 4 at the top)
 
 
 def test_logic_finds_two_hidden_effects(monkeypatch):

@@ -336,10 +336,25 @@ def test_changed_uls_window_rebuilds_only_uls_simulations(quick_run):
     assert updated == expected
 
 
+def _slurm_rerun_available():
+    """True where tests/test_slurm_cluster.py re-runs the quick study from scratch (through a real
+    SLURM cluster) and compares every result file byte for byte with the ``quick_run`` fixture."""
+    import importlib.util
+
+    from slurm_cluster import missing_requirements
+    return missing_requirements() is None and all(
+        importlib.util.find_spec(m) is not None
+        for m in ("snakemake_executor_plugin_slurm", "snakemake_executor_plugin_slurm_jobstep"))
+
+
+@pytest.mark.skipif(_slurm_rerun_available(), reason=(
+    "the from-scratch rerun is done by tests/test_slurm_cluster.py (same bytes through SLURM); "
+    "a second local rerun would only add ~3 min"))
 def test_rerun_from_scratch_is_byte_identical(quick_run, tmp_path):
     """Same config and seed in a fresh directory → identical files (LAS: byte-identical except
     the header's creation date, which laspy sets to the day of writing; pulse tables: identical
-    arrays, the .npz zip entries carry write times)."""
+    arrays, the .npz zip entries carry write times). Where a local SLURM cluster can be started,
+    the SLURM test does this rerun (and the same comparison) instead."""
     first, _, _ = quick_run
     _, seconds = _run_quick(tmp_path)
     print(f"\nsecond quick run: {seconds:.1f} s")

@@ -82,6 +82,8 @@ class Setup:
     workers: int = 2
     grid: int = 7
     max_effects: int = 2
+    #: whether ``candidates`` was given (else: the whole library, less what the scenes cannot model)
+    candidates_given: bool = False
     #: benchmarks only: the hidden truth as candidate values; the report then also gives the
     #: error of a simulation told these values (the "recoverable" error's reference)
     oracle: dict | None = None
@@ -153,7 +155,7 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ConfigError(f"{path}: folds must be an integer ≥ 2, got {folds!r}")
     return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), int(d.get("workers", 2)),
-                 int(d.get("grid", 7)), int(d.get("max_effects", 2)))
+                 int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")))
 
 
 # ------------------------------------------------------------------------------------ simulation
@@ -184,7 +186,12 @@ class _PlotSim:
         self.region = [lo[0] - p.margin, lo[1] - p.margin, hi[0] + p.margin, hi[1] + p.margin]
         self.survey = load_survey_dict(p.survey)
         self.survey_dir = Path(p.survey).resolve().parent
-        self.scene = Scene.from_yaml(p.scene)
+        self.has_scaled = False
+
+        def _note_scaled(model):
+            self.has_scaled |= model.half is not None
+            return model
+        self.scene = Scene.from_yaml(p.scene, voxel_transform=_note_scaled)
         real = read_las(p.real)
         self.real = self._features(cloud_arrays(real))
         self._parts = {
@@ -205,11 +212,26 @@ class _PlotSim:
         return f
 
     def _survey_for(self, assign):
-        s, refl = dict(self.survey), 1.0
+        """The survey mapping and the scene edits (merged) of a parameter assignment."""
+        s, edits = dict(self.survey), {"reflectance_scale": 1.0}
         for name in sorted(assign):
-            s, r = lib.CANDIDATES[name].apply(s, assign[name])
-            refl *= r
-        return s, refl
+            s, e = lib.CANDIDATES[name].apply(s, assign[name])
+            edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
+            edits.update(e)
+        return s, edits
+
+    def _scene_for(self, edits):
+        """The plot's scene, or its voxel reconstruction corrected for TLS occlusion."""
+        from vlsforest.sim import Scene
+
+        gain = edits.get("top_gain", 0.0)
+        if gain == 0.0:
+            return self.scene
+        if not self.has_scaled:
+            raise ConfigError(f"{self.p.scene}: tls_occlusion needs PAD-scaled voxel crowns (a scaled method); "
+                              "this scene has none — leave the candidate out")
+        return Scene.from_yaml(self.p.scene, voxel_transform=lambda m: lib.occlusion_corrected(m, gain)
+                               if m.half is not None else m)
 
     def features(self, assign: dict) -> pd.DataFrame:
         from vlsforest.sim import redetect, simulate, survey_from_dict
@@ -217,10 +239,10 @@ class _PlotSim:
         trace_part = {k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"}
         key = json.dumps(trace_part, sort_keys=True)
         if key not in self._traces:
-            s, _ = self._survey_for(trace_part)
+            s, edits = self._survey_for(trace_part)
             sv = survey_from_dict(s, base_dir=self.survey_dir)
             t0 = time.perf_counter()
-            res = simulate(self.scene, sv, seed=self.seed, workers=self.workers, keep_hits=True,
+            res = simulate(self._scene_for(edits), sv, seed=self.seed, workers=self.workers, keep_hits=True,
                            region=self.region)
             keep = np.zeros(len(res.pulses["slot"]), bool)
             keep[np.unique(res.hits["pulse"])] = True
@@ -234,9 +256,12 @@ class _PlotSim:
             while len(self._traces) > 3:
                 self._traces.popitem(last=False)
         pulses, hits = self._traces[key]
-        s, refl = self._survey_for(assign)
+        s, edits = self._survey_for(assign)
         sv = survey_from_dict(s, base_dir=self.survey_dir)
-        parts = dict(self._parts, reflectance=self._parts["reflectance"] * refl)
+        parts = dict(self._parts, reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
+        if "specularity" in edits:
+            parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
+            parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
         res = redetect(parts, pulses, hits, sv, seed=self.seed)
         self.n_redetected += 1
         return self._features(cloud_arrays(res))
@@ -263,6 +288,11 @@ class _Study:
     @property
     def n_traced(self):
         return sum(p.n_traced for p in self.plots)
+
+    @property
+    def has_scaled(self):
+        """Whether every plot's scene has PAD-scaled voxel crowns (``tls_occlusion`` applies)."""
+        return all(p.has_scaled for p in self.plots)
 
     @property
     def survey(self):
@@ -400,6 +430,12 @@ def diagnose(setup: Setup, log=None) -> dict:
     rng = np.random.default_rng(setup.seed)
     study = _Study(setup, log)
     cands = lib.select(setup.candidates)
+    if not study.has_scaled and any(c.name == "tls_occlusion" for c in cands):
+        if setup.candidates_given:
+            raise ConfigError("candidate tls_occlusion corrects PAD-scaled voxel crowns, but a plot's scene has "
+                              "none (a fixed-size method?); leave it out of 'candidates'")
+        cands = [c for c in cands if c.name != "tls_occlusion"]
+        log("tls_occlusion left out: the scenes have no PAD-scaled voxel crowns")
     base: dict = {}
     D0 = study.residual(base)
     have = np.isfinite(study.real.to_numpy(float)).any(axis=1)

@@ -13,11 +13,22 @@ id                        parameter(s)            group        render          p
                           ``minor_mrad`` (FWHM)                                minor 0.3 – 3 × base
 ``detection_threshold``   ``min_energy``          link budget  stored hits     0 – 1e5 (amplitude)
 ``reflectance``           ``scale`` (all parts)   link budget  stored hits     0.2 – 2
+``incidence_reflectance`` ``specularity``         link budget  stored hits     0 – 0.9 (Phong ks,
+                          (shininess 10)                                       all parts)
 ``waveform_window``       ``window_ns``           dead zone    stored hits     0.5 – 6 ns
 ``max_returns``           ``n``                   dead zone    stored hits     1 – 7
 ``range_noise``           ``sigma_m``             noise        stored hits     0 – 0.25 m
 ``trajectory_noise``      ``position_sigma_m``    noise        re-trace        0 – 0.3 m
+``tls_occlusion``         ``top_gain``            model input  re-trace        0 – 8
 ========================  ======================  ===========  ==============  =====================
+
+``tls_occlusion`` is the one model-input candidate: the TLS sees the upper crown through the
+lower one, so PAD is under-estimated there (Weiser et al. 2021, §4) and PAD-scaled cubes come out
+too small. The correction multiplies each crown cube's PAD by ``1 + top_gain · ramp``, where
+``ramp`` rises linearly from 0 at half the crown's height range to 1 at its top
+(:func:`occlusion_corrected`); with the study's α = 0.5 the cube side grows by the square root of
+that factor, capped at the cell. It applies to PAD-scaled voxel models only (the scaled methods);
+cells the TLS never hit cannot be restored by it.
 
 Groups are the declared look-alikes on tree metrics; within a group the diagnosis names the
 observables that separate the members (:data:`TIE_BREAKERS`).
@@ -78,6 +89,8 @@ class Candidate:
             "max_returns": {"n": float(ov.get("max_returns", pre.max_returns) or 7)},
             "range_noise": {"sigma_m": float(ov.get("range_noise_m", pre.range_noise_m))},
             "trajectory_noise": {"position_sigma_m": float(tn.get("position_sigma_m", 0.0))},
+            "incidence_reflectance": {"specularity": 0.0},
+            "tls_occlusion": {"top_gain": 0.0},
         }[self.name]
 
     def bounds(self, survey: dict) -> dict:
@@ -106,21 +119,23 @@ class Candidate:
             out[p.name] = float(np.clip(c / p.delta if p.log else c - p.delta, lo, hi))
         return out
 
-    def apply(self, survey: dict, values: dict) -> tuple[dict, float]:
-        """A copy of ``survey`` with the candidate set to ``values``; also the reflectance factor.
+    def apply(self, survey: dict, values: dict) -> tuple[dict, dict]:
+        """A copy of ``survey`` with the candidate set to ``values``; also the scene edits.
 
         Returns
         -------
-        (dict, float)
-            The modified survey mapping and the factor applied to every part's reflectance
-            (1 unless this is the ``reflectance`` candidate).
+        (dict, dict)
+            The modified survey mapping and the edits of the scene this candidate needs (empty
+            for survey-only candidates): ``reflectance_scale`` (factor on every part's
+            reflectance), ``specularity`` (Phong ks of every part, shininess
+            :data:`SHININESS`), ``top_gain`` (see :func:`occlusion_corrected`).
         """
         from vlsforest.sim.scanner import PRESETS
 
         s = copy.deepcopy(survey)
         ov = dict(s.get("overrides") or {})
         pre = PRESETS[s["scanner"]]
-        refl = 1.0
+        edits = {}
         if self.name == "beam_divergence":
             div = ov.get("beam_divergence_mrad", pre.beam_divergence_mrad)
             div = (div, div) if np.isscalar(div) else div
@@ -131,7 +146,11 @@ class Candidate:
         elif self.name == "detection_threshold":
             ov["min_energy"] = float(values["min_energy"])
         elif self.name == "reflectance":
-            refl = float(values["scale"])
+            edits["reflectance_scale"] = float(values["scale"])
+        elif self.name == "incidence_reflectance":
+            edits["specularity"] = float(values["specularity"])
+        elif self.name == "tls_occlusion":
+            edits["top_gain"] = float(values["top_gain"])
         elif self.name == "waveform_window":
             ov["window_size_ns"] = float(values["window_ns"])
         elif self.name == "max_returns":
@@ -144,7 +163,7 @@ class Candidate:
             tn.setdefault("correlation_s", 2.0)
             s["trajectory_noise"] = tn
         s["overrides"] = ov
-        return s, refl
+        return s, edits
 
 
 CANDIDATES = {c.name: c for c in (
@@ -165,7 +184,56 @@ CANDIDATES = {c.name: c for c in (
               "random range error of each echo"),
     Candidate("trajectory_noise", (Param("position_sigma_m", 0.0, 0.3, 0.05),), "noise", "trace",
               "time-correlated position errors of the platform (GNSS/INS)"),
+    Candidate("incidence_reflectance", (Param("specularity", 0.0, 0.9, 0.3),), "link budget", "hits",
+              "reflection depends on the incidence angle more than Lambert's law (Phong, cos-power lobe)"),
+    Candidate("tls_occlusion", (Param("top_gain", 0.0, 8.0, 1.0),), "model input", "trace",
+              "PAD under-estimated in the upper crown, where the TLS saw through the lower crown"),
 )}
+
+#: Phong shininess of the ``incidence_reflectance`` candidate (the recording physics' default)
+SHININESS = 10.0
+
+#: exponent α of the PAD-scaled cubes assumed by the ``tls_occlusion`` correction (the study's)
+ALPHA_SCALED = 0.5
+
+
+def occlusion_corrected(model, top_gain: float):
+    """A PAD-scaled voxel model with the upper-crown PAD raised (the ``tls_occlusion`` candidate).
+
+    Each cube's PAD is multiplied by ``g = 1 + top_gain · clip((z − zmid) / (ztop − zmid), 0, 1)``
+    with ``zmid`` the middle and ``ztop`` the top of the model's cube centres (one model = one
+    crown in the study's scenes); the cube side grows by ``g ** ALPHA_SCALED`` (a = a0 ·
+    (PAD/PADmax)^α), capped at the cell size, and the centre is moved only as far as needed to
+    keep the cube inside its cell.
+
+    Parameters
+    ----------
+    model : vlsforest.voxels.VoxelModel
+        A model with per-cube sizes (``half``) — fixed-size models have no PAD to correct.
+    top_gain : float
+        Relative PAD increase at the crown top (≥ 0).
+
+    Returns
+    -------
+    VoxelModel
+    """
+    from vlsforest.voxels import VoxelModel
+
+    if model.half is None:
+        raise ConfigError("tls_occlusion corrects PAD-scaled cubes; this voxel model has fixed-size cubes")
+    if not top_gain >= 0:
+        raise ConfigError(f"tls_occlusion: top_gain must be ≥ 0, got {top_gain!r}")
+    centre = model.centres()
+    z = centre[:, 2]
+    zmid, ztop = 0.5 * (z.min() + z.max()), z.max()
+    ramp = np.clip((z - zmid) / (ztop - zmid), 0.0, 1.0) if ztop > zmid else np.zeros(len(z))
+    g = 1.0 + top_gain * ramp
+    half = np.minimum(model.half * g ** ALPHA_SCALED, 0.5 * model.size)
+    lo = model.ijk * model.size
+    centre = np.clip(centre, lo + half[:, None], lo + model.size - half[:, None])
+    pad = None if model.pad is None else model.pad * g
+    return VoxelModel(model.size, model.ijk, model.owner, half, centre, pad)
+
 
 #: observables that separate the members of a group (named in the report when a group ties)
 TIE_BREAKERS = {

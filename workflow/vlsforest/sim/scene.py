@@ -205,14 +205,19 @@ class Scene:
                                          None if centre is None else np.asarray(centre, dtype=np.float64)))
 
     @classmethod
-    def from_yaml(cls, path) -> "Scene":
-        """Load a SCENE.yaml (see the module docstring)."""
+    def from_yaml(cls, path, voxel_transform=None) -> "Scene":
+        """Load a SCENE.yaml (see the module docstring).
+
+        ``voxel_transform`` (optional) maps each voxel model read from an ``.npz`` part to the
+        model that is added instead (e.g. a correction of the reconstruction).
+        """
         path = Path(path)
-        return cls.from_dict(_load_yaml(path, "scene"), base_dir=path.parent, source=str(path))
+        return cls.from_dict(_load_yaml(path, "scene"), base_dir=path.parent, source=str(path),
+                             voxel_transform=voxel_transform)
 
     @classmethod
-    def from_dict(cls, cfg: dict, base_dir=".", source: str = "scene") -> "Scene":
-        """Build a scene from a parsed SCENE.yaml mapping."""
+    def from_dict(cls, cfg: dict, base_dir=".", source: str = "scene", voxel_transform=None) -> "Scene":
+        """Build a scene from a parsed SCENE.yaml mapping (``voxel_transform``: see :meth:`from_yaml`)."""
         if not isinstance(cfg, dict) or "parts" not in cfg:
             raise ConfigError(f"{source}: needs a top-level 'parts:' list")
         extra = set(cfg) - {"parts", "voxel_backend", "name"}
@@ -224,7 +229,7 @@ class Scene:
         scene = cls(voxel_backend=cfg.get("voxel_backend", "auto"))
         base = Path(base_dir)
         for n, p in enumerate(parts):
-            _add_part_from_dict(scene, p, base, f"{source}: parts[{n}]")
+            _add_part_from_dict(scene, p, base, f"{source}: parts[{n}]", voxel_transform)
         return scene
 
     # ------------------------------------------------------------------ geometry
@@ -508,7 +513,7 @@ def _num(d: dict, key: str, where: str, default=None, positive=False, integer=Fa
     return int(v) if integer else float(v)
 
 
-def _add_part_from_dict(scene: Scene, p, base: Path, where: str) -> None:
+def _add_part_from_dict(scene: Scene, p, base: Path, where: str, voxel_transform=None) -> None:
     if not isinstance(p, dict):
         raise ConfigError(f"{where} must be a mapping")
     kind = p.get("type")
@@ -582,6 +587,8 @@ def _add_part_from_dict(scene: Scene, p, base: Path, where: str) -> None:
             model = VoxelModel.load(path_of("path"))
             if model.n_voxels == 0:
                 raise InputDataError(f"{path_of('path')}: voxel model holds no voxels")
+            if voxel_transform is not None:
+                model = voxel_transform(model)
             half = None if model.half is None else model.half
             scene.add_voxels(oid, model.ijk, np.zeros(3), model.size, half,
                              None if half is None else model.centres(), mat, cls_, name)

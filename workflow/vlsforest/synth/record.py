@@ -112,6 +112,7 @@ DEFAULT_TLS = {
     "tilted_min_height_m": 25.0,  # plots whose tallest target exceeds this get tilted scans
     "n_tilted": 2,
     "tilt_deg": 40.0,
+    "clearance_m": 2.0,        # a position keeps this far from stems and from crowns reaching down to it
 }
 
 #: ALS / ULS campaign settings of the study (Table 3); altitude above ground by plot
@@ -257,8 +258,32 @@ def _scene_extent(plot):
 
 
 # ---------------------------------------------------------------------------------- TLS
+def tls_clearance(plot, x: float, y: float, cfg: dict) -> float:
+    """How far (m) a scanner at ``(x, y)`` stands clear of the trees (negative: too close).
+
+    A field crew sets the scanner up where it sees out: at least ``clearance_m`` from every stem
+    surface, and outside the lower crown of trees whose crown comes down to the scanner (crown
+    base below scanner height + 1 m; crown radius taken as 0.6 × the radius of the crown
+    projection, the lower crown being narrower than its widest part).
+    """
+    best = np.inf
+    h = float(cfg["height_m"])
+    for t in plot.trees:
+        d = float(np.hypot(t.x - x, t.y - y))
+        best = min(best, d - 0.5 * t.params.dbh - cfg["clearance_m"])
+        if t.params.cbh < h + 1.0:
+            best = min(best, d - 0.6 * np.sqrt(t.params.cpa / np.pi) - 0.5 * cfg["clearance_m"])
+    return best
+
+
 def tls_positions(plot, cfg: dict) -> list[dict]:
-    """Scan positions on an ellipse around the targets (+ tilted extra scans for tall trees)."""
+    """Scan positions on an ellipse around the targets (+ tilted extra scans for tall trees).
+
+    Position ``k`` starts at angle ``2πk/n + π/n`` on the ellipse; where it stands too close to a
+    tree (:func:`tls_clearance`) it moves along the ellipse (up to ±0.4 of the spacing, 1° steps)
+    and, failing that, onto an ellipse up to 3 m smaller or larger, to the first clear spot (or the
+    clearest one when none is clear).
+    """
     targets = [t for t in plot.trees if t.target]
     tx = np.array([t.x for t in targets])
     ty = np.array([t.y for t in targets])
@@ -266,10 +291,24 @@ def tls_positions(plot, cfg: dict) -> list[dict]:
     ax = float(np.abs(tx - cx).max()) + cfg["ring_margin_m"]
     ay = float(np.abs(ty - cy).max()) + cfg["ring_margin_m"]
     n = int(cfg["n_positions"])
+    span = np.radians(np.arange(0.0, 0.4 * 360.0 / n + 1e-9, 1.0))
+    shifts = np.r_[0.0, np.ravel(np.column_stack([span[1:], -span[1:]]))]
     out = []
     for k in range(n):
-        phi = 2 * np.pi * k / n + np.pi / n
-        x, y = cx + ax * np.cos(phi), cy + ay * np.sin(phi)
+        phi0 = 2 * np.pi * k / n + np.pi / n
+        best = None
+        for dr in (0.0, -1.0, 1.0, -2.0, 2.0, -3.0, 3.0):
+            for dphi in shifts:
+                phi = phi0 + dphi
+                xy = (cx + (ax + dr) * np.cos(phi), cy + (ay + dr) * np.sin(phi))
+                c = tls_clearance(plot, *xy, cfg)
+                if best is None or c > best[0]:
+                    best = (c, xy)
+                if c >= 0:
+                    break
+            if best[0] >= 0:
+                break
+        x, y = best[1]
         z = float(plot.ground.z(np.array([x]), np.array([y]))[0]) + cfg["height_m"]
         heading = float(np.degrees(np.arctan2(cx - x, cy - y)) % 360.0)  # compass azimuth towards the centre
         out.append({"position": [float(x), float(y), z], "heading_deg": heading, "tilt_deg": 0.0})
