@@ -587,14 +587,11 @@ def _cluster_stems(pts, ph, cfg: SegmentConfig, rng, max_stems: int = 3):
         cov = _arc_coverage(sub[inl, :2], cx, cy)
         if n_in < cfg.seed_min_points or cov < 0.1:
             return
-        # a stem section is hollow: few points inside the circle
-        tol = max(0.02, 0.15 * r)
-        inside = int((np.hypot(pts[:, 0] - cx, pts[:, 1] - cy) < r - tol).sum())
-        if inside > max(4, 0.15 * n_in):
-            return
         # the same circle must explain both halves of the slice (a vertical stem, not a clump)
         ok = np.ptp(sh[inl]) >= 0.6 * thick
-        for half in (sh < mid, sh >= mid):
+        lower = ph < mid
+        centre = np.tile([cx, cy], (len(pts), 1))  # per point: its half's circle centre
+        for half, phalf in ((sh < mid, lower), (sh >= mid, ~lower)):
             if not ok:
                 break
             hin = half & inl
@@ -603,7 +600,15 @@ def _cluster_stems(pts, ph, cfg: SegmentConfig, rng, max_stems: int = 3):
             elif hin.sum() >= 20:
                 hx, hy, hr, _ = fit_circle(sub[hin, :2])
                 ok = bool(np.isfinite(hr) and math.hypot(hx - cx, hy - cy) <= 0.5 * r + 0.05)
+                if ok:
+                    centre[phalf] = (hx, hy)
         if not ok:
+            return
+        # a stem section is hollow: few points inside the circle (measured from each half's own
+        # centre, so that a leaning stem scanned all round is not taken for a solid clump)
+        tol = max(0.02, 0.15 * r)
+        inside = int((np.hypot(pts[:, 0] - centre[:, 0], pts[:, 1] - centre[:, 1]) < r - tol).sum())
+        if inside > max(4, 0.15 * n_in):
             return
         dist = np.abs(np.hypot(pts[:, 0] - cx, pts[:, 1] - cy) - r)
         near = dist < max(0.05, 0.25 * r)
