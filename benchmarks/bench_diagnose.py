@@ -57,9 +57,8 @@ CASES = {
     "out_of_library": ({"range_noise": {"sigma_m": 0.06}}, {}, None),
 }
 
-#: cases diagnosed with a reduced library (case → candidate ids)
-LIBRARY = {"out_of_library": ["beam_divergence", "elliptical_footprint", "detection_threshold", "reflectance",
-                              "incidence_reflectance", "waveform_window", "max_returns", "tls_occlusion"]}
+#: cases diagnosed with a reduced library (case → candidate groups withheld)
+WITHHELD = {"out_of_library": ("noise",)}
 
 
 def _quick_view(seed: int, workdir: Path) -> Path:
@@ -97,7 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
     cases = list(CASES) if a.cases == ["all"] else a.cases
-    from vlsforest.diagnose import diagnose, load_setup
+    from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
 
     rows = []
     for seed in a.seeds:
@@ -110,8 +109,9 @@ def main(argv=None) -> int:
         for case in cases:
             forest = _record(seed, case, a.workdir)
             setup = load_setup(cfg, real_dir=forest / "plots")
-            if case in LIBRARY:
-                setup.candidates, setup.candidates_given = list(LIBRARY[case]), True
+            if case in WITHHELD:
+                setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
+                setup.candidates_given = True
             setup.oracle = CASES[case][1] or None
             t0 = time.perf_counter()
             rep = diagnose(setup, log=lambda m: None)

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from slurm_cluster import missing_requirements, pid_alive, single_node_cluster
+from slurm_cluster import missing_plugins, missing_requirements, pid_alive, single_node_cluster
 from wfrun import QUICK, REPO, snakemake_cli
 
 SLURM_PROFILE = REPO / "profiles" / "slurm"
@@ -47,8 +47,8 @@ def _steps_done(text):
 
 
 def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
-    pytest.importorskip("snakemake_executor_plugin_slurm")
-    pytest.importorskip("snakemake_executor_plugin_slurm_jobstep")
+    if missing_plugins():
+        pytest.skip(missing_plugins())
     local, local_proc, local_seconds = quick_run
     profile = yaml.safe_load((SLURM_PROFILE / "profile.yaml").read_text())
     assert profile["executor"] == "slurm"

@@ -227,9 +227,7 @@ class _PlotSim:
         gain = edits.get("top_gain", 0.0)
         if gain == 0.0:
             return self.scene
-        if not self.has_scaled:
-            raise ConfigError(f"{self.p.scene}: tls_occlusion needs PAD-scaled voxel crowns (a scaled method); "
-                              "this scene has none — leave the candidate out")
+        # (scenes without PAD-scaled crowns never get here: diagnose() leaves the candidate out)
         return Scene.from_yaml(self.p.scene, voxel_transform=lambda m: lib.occlusion_corrected(m, gain)
                                if m.half is not None else m)
 
