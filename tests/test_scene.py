@@ -44,6 +44,32 @@ def test_embree_and_grid_backends_agree(scaled):
     assert np.abs(c1[hit] - c2[hit]).max() < 1e-3
 
 
+def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
+    monkeypatch.setattr(Scene, "EMBREE_VOXEL_LIMIT", 500)
+    rng = np.random.default_rng(3)
+    a = np.unique(rng.integers(0, 12, size=(400, 3)), axis=0)          # < 500 alone
+    b = np.unique(rng.integers(20, 32, size=(400, 3)), axis=0)         # same lattice: 2 × ~390 > 500
+    c = np.unique(rng.integers(0, 6, size=(100, 3)), axis=0)           # another lattice
+    size = 0.1
+    res = {}
+    for backend in ("auto", "embree"):
+        sc = Scene(voxel_backend=backend)
+        sc.add_voxels(1, a, [0.0, 0.0, 0.0], size)
+        sc.add_voxels(2, b, [0.3, 0.0, 0.0], size)        # congruent origin: same lattice
+        sc.add_voxels(3, c, [0.0, 0.0, 5.03], 0.25)
+        in_embree = [sc._in_embree(v) for v in sc._voxelsets]
+        if backend == "auto":
+            assert in_embree == [False, False, True]
+            assert len(sc.grids) == 1 and sc.grids[0].n_voxels == len(a) + len(b)
+        lo, hi = sc.bounds()
+        res[backend] = sc.trace(*_rays(3000, np.random.default_rng(4), lo, hi))
+    (t1, p1, c1), (t2, p2, c2) = res["auto"], res["embree"]
+    hit = np.isfinite(t2)
+    assert hit.mean() > 0.3 and {0, 1, 2} <= set(p2[hit].tolist())
+    assert np.array_equal(np.isfinite(t1), hit) and (p1 == p2).all()
+    assert np.abs(t1[hit] - t2[hit]).max() < 1e-4
+
+
 def test_vox_scaled_placement(tmp_path):
     ijk = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]])
     pad = np.array([8.0, 2.0, 0.0])

@@ -54,6 +54,21 @@ def test_fixed_voxels_global_lattice_and_counts(size):
     assert len(np.unique(m.ijk, axis=0)) == m.n_voxels
 
 
+@pytest.mark.parametrize("span", [40, 2 ** 40])
+def test_group_cells_matches_row_unique(span):
+    from vlsforest.voxels import _group_cells
+
+    rng = np.random.default_rng(7)
+    ijk = rng.integers(-span, span, size=(5000, 3))
+    ijk[::3] = ijk[1::3][: len(ijk[::3])]  # repeated cells
+    want_cells, want_inv, want_counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    cells, inv, counts = _group_cells(ijk)
+    assert np.array_equal(cells, want_cells)          # same lexicographic order
+    assert np.array_equal(inv, want_inv.reshape(-1))
+    assert np.array_equal(counts, want_counts)
+    assert np.array_equal(cells[inv], ijk)
+
+
 def test_fixed_voxels_min_points_and_owner_majority():
     size = 1.0
     pts = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3],  # cell 0: owners 7, 7, 3
