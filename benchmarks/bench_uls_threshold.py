@@ -27,14 +27,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
 
-def _parts(scene) -> dict:
-    return {"object_id": np.array([q.object_id for q in scene.parts]),
-            "classification": np.array([q.classification for q in scene.parts]),
-            "reflectance": np.array([q.material.reflectance for q in scene.parts]),
-            "specularity": np.array([q.material.specularity for q in scene.parts]),
-            "shininess": np.array([q.material.shininess for q in scene.parts])}
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0, 1000, 5000, 10000, 20000, 40000])
@@ -61,13 +53,8 @@ def main(argv=None) -> int:
         runs = []
         for sv in R.airborne_survey(plot, sensor, st["recordings"][sensor], phys[sensor], a.seed):
             res = simulate(scene, survey_from_dict(sv), keep_hits=True, region=R._recording_region(plot))
-            keep = np.zeros(len(res.pulses["slot"]), bool)
-            keep[np.unique(res.hits["pulse"])] = True
-            new = np.cumsum(keep) - 1
-            hits = dict(res.hits)
-            hits["pulse"] = new[hits["pulse"]]
-            runs.append((sv, {k: v[keep] for k, v in res.pulses.items()}, hits))
-        store[sensor] = (_parts(scene), runs)
+            runs.append((sv, *res.hit_pulses()))
+        store[sensor] = (scene.part_table(), runs)
 
     def metrics(sensor, overrides):
         parts, runs = store[sensor]

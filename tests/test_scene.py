@@ -57,7 +57,7 @@ def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
         sc.add_voxels(1, a, [0.0, 0.0, 0.0], size)
         sc.add_voxels(2, b, [0.3, 0.0, 0.0], size)        # congruent origin: same lattice
         sc.add_voxels(3, c, [0.0, 0.0, 5.03], 0.25)
-        in_embree = [sc._in_embree(v) for v in sc._voxelsets]
+        in_embree = sc._routing()
         if backend == "auto":
             assert in_embree == [False, False, True]
             assert len(sc.grids) == 1 and sc.grids[0].n_voxels == len(a) + len(b)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from vlsforest.errors import InputDataError
 from vlsforest.sim import Material, Scene, redetect, simulate
 from vlsforest.sim.survey import survey_from_dict
 from vlsforest.sim.waveform import C_M_PER_NS
@@ -147,6 +148,27 @@ def test_range_noise_sigma():
     assert np.array_equal(again.points["xyz"], res.points["xyz"])
     other = simulate(sc, sv, workers=1, seed=4)
     assert not np.array_equal(other.points["xyz"], res.points["xyz"])
+
+
+def test_hit_pulses_keep_what_redetect_needs():
+    rng = np.random.default_rng(1)
+    sc = Scene()  # a voxel crown and no ground: most pulses miss
+    ijk = np.unique(np.floor(rng.uniform([-2, -2, 5], [2, 2, 12], size=(300, 3)) / 0.5).astype(int), axis=0)
+    sc.add_voxels(2, ijk, np.zeros(3), 0.5, material=Material(0.6))
+    ov = {"prf_hz": 20000, "scan_freq_hz": 40, "scan_angle_deg": 20.0, "max_scan_angle_deg": 20.0,
+          "range_min_m": 0.0}
+    sv = _survey(ov, _line(-4, 4, 80.0), speed=4.0)
+    base = simulate(sc, sv, workers=1, keep_hits=True)
+    pulses, hits = base.hit_pulses()
+    assert 0 < len(pulses["slot"]) < 0.5 * len(base.pulses["slot"])
+    assert np.array_equal(pulses["slot"], np.unique(base.pulses["slot"][base.hits["pulse"]]))
+    assert np.array_equal(pulses["slot"][hits["pulse"]], base.pulses["slot"][base.hits["pulse"]])
+    again = redetect(sc.part_table(), pulses, hits, sv)
+    assert len(again.points["xyz"]) > 100
+    assert np.array_equal(again.points["xyz"], base.points["xyz"])
+    assert np.array_equal(again.points["object_id"], base.points["object_id"])
+    with pytest.raises(InputDataError, match="keep_hits"):
+        simulate(sc, sv, workers=1).hit_pulses()
 
 
 def test_threshold_removes_weakest_first():

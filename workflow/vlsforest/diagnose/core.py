@@ -194,13 +194,7 @@ class _PlotSim:
         self.scene = Scene.from_yaml(p.scene, voxel_transform=_note_scaled)
         real = read_las(p.real)
         self.real = self._features(cloud_arrays(real))
-        self._parts = {
-            "object_id": np.array([q.object_id for q in self.scene.parts]),
-            "classification": np.array([q.classification for q in self.scene.parts]),
-            "reflectance": np.array([q.material.reflectance for q in self.scene.parts]),
-            "specularity": np.array([q.material.specularity for q in self.scene.parts]),
-            "shininess": np.array([q.material.shininess for q in self.scene.parts]),
-        }
+        self._parts = self.scene.part_table()
         self._traces: OrderedDict = OrderedDict()
         self.n_traced = 0
         self.n_redetected = 0
@@ -242,13 +236,7 @@ class _PlotSim:
             t0 = time.perf_counter()
             res = simulate(self._scene_for(edits), sv, seed=self.seed, workers=self.workers, keep_hits=True,
                            region=self.region)
-            keep = np.zeros(len(res.pulses["slot"]), bool)
-            keep[np.unique(res.hits["pulse"])] = True
-            new = np.cumsum(keep) - 1
-            pulses = {k: v[keep] for k, v in res.pulses.items()}
-            hits = dict(res.hits)
-            hits["pulse"] = new[hits["pulse"]]
-            self._traces[key] = (pulses, hits)
+            self._traces[key] = res.hit_pulses()
             self.n_traced += 1
             self.log(f"  {self.p.name}: traced {json.dumps(trace_part)} in {time.perf_counter() - t0:.1f} s")
             while len(self._traces) > 3:

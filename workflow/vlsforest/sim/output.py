@@ -79,15 +79,10 @@ def save_hits(path, result, scene, block_slots: int = 20000) -> Path:
         raise InputDataError("the simulation kept no sub-ray hits (run it with keep_hits=True)")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    parts = scene.parts
     data = {f"pulse_{k}": result.pulses[k] for k in _PULSE_COLS}
     data.update({f"hit_{k}": v for k, v in result.hits.items()})
-    data.update(part_object_id=np.array([p.object_id for p in parts], np.int32),
-                part_classification=np.array([p.classification for p in parts], np.uint8),
-                part_reflectance=np.array([p.material.reflectance for p in parts]),
-                part_specularity=np.array([p.material.specularity for p in parts]),
-                part_shininess=np.array([p.material.shininess for p in parts]),
-                block_slots=np.array(block_slots))
+    data.update({f"part_{k}": v for k, v in scene.part_table().items()})
+    data["block_slots"] = np.array(block_slots)
     save_npz(path, data)
     return path
 

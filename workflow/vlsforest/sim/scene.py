@@ -135,6 +135,7 @@ class Scene:
         self._meshes: list[_Mesh] = []
         self._voxelsets: list[_VoxelSet] = []
         self._grids: list[VoxelGrid] | None = None
+        self._embree_routing: list[bool] | None = None
         self._embree = None
         self._embree_parts = None
         self._shift = None
@@ -146,6 +147,7 @@ class Scene:
             raise ConfigError(f"parts: object id {object_id} is used twice")
         self.parts.append(ScenePart(int(object_id), kind, material or Material(), int(classification), name))
         self._grids = None
+        self._embree_routing = None
         self._embree = None
         self._bounds = None
         return len(self.parts) - 1
@@ -271,18 +273,38 @@ class Scene:
         lo, hi = self.bounds()
         return (lo[0], lo[1], hi[0], hi[1]), lo[2]
 
+    def part_table(self) -> dict:
+        """Per part: ``object_id``, ``classification``, ``reflectance``, ``specularity``,
+        ``shininess`` arrays — the part table :func:`vlsforest.sim.redetect` takes."""
+        return {"object_id": np.array([p.object_id for p in self.parts], np.int32),
+                "classification": np.array([p.classification for p in self.parts], np.uint8),
+                "reflectance": np.array([p.material.reflectance for p in self.parts]),
+                "specularity": np.array([p.material.specularity for p in self.parts]),
+                "shininess": np.array([p.material.shininess for p in self.parts])}
+
     @property
     def grids(self) -> list[VoxelGrid]:
         """The voxel grids, one per lattice (voxel parts sharing a lattice are merged)."""
         if self._grids is None:
-            self._grids = _build_grids([s for s in self._voxelsets if not self._in_embree(s)])
+            self._grids = _build_grids([s for s, e in zip(self._voxelsets, self._routing()) if not e])
         return self._grids
 
-    def _in_embree(self, vset: _VoxelSet) -> bool:
-        if self.voxel_backend == "auto":
-            key = _lattice_key(vset)
-            return sum(len(s.ijk) for s in self._voxelsets if _lattice_key(s) == key) <= self.EMBREE_VOXEL_LIMIT
-        return self.voxel_backend == "embree"
+    def _routing(self) -> list[bool]:
+        """Per voxel set (in :attr:`_voxelsets` order): whether it goes to Embree.
+
+        Computed once per scene state (adding a part resets it): :attr:`uses_embree` asks on
+        every trace call.
+        """
+        if self._embree_routing is None:
+            if self.voxel_backend == "auto":
+                keys = [_lattice_key(s) for s in self._voxelsets]
+                cubes: dict[tuple, int] = {}
+                for k, s in zip(keys, self._voxelsets):
+                    cubes[k] = cubes.get(k, 0) + len(s.ijk)
+                self._embree_routing = [cubes[k] <= self.EMBREE_VOXEL_LIMIT for k in keys]
+            else:
+                self._embree_routing = [self.voxel_backend == "embree"] * len(self._voxelsets)
+        return self._embree_routing
 
     @property
     def n_voxels(self) -> int:
@@ -313,8 +335,8 @@ class Scene:
             TriangleMesh(sc, v.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
             parts.append(p.part)
             labels.append(None)
-        for v in self._voxelsets:
-            if self._in_embree(v):
+        for v, in_embree in zip(self._voxelsets, self._routing()):
+            if in_embree:
                 verts, faces = _cube_triangles(v)
                 if len(faces):
                     TriangleMesh(sc, (verts - self._shift).astype(np.float32), faces)
@@ -414,7 +436,7 @@ class Scene:
     @property
     def uses_embree(self) -> bool:
         """Whether meshes (and planes, and small voxel sets) are traced with Embree."""
-        return bool(self._meshes) or any(self._in_embree(v) for v in self._voxelsets)
+        return bool(self._meshes) or any(self._routing())
 
     @property
     def shift(self) -> np.ndarray:
