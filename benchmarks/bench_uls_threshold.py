@@ -37,7 +37,7 @@ def main(argv=None) -> int:
 
     from conftest import QUICK_SYNTH
     from vlsforest.metrics import tree_metrics
-    from vlsforest.sim import redetect, simulate, survey_from_dict
+    from vlsforest.sim import redetect, survey_from_dict, trace_hits
     from vlsforest.synth import record as R
     from vlsforest.synth.forest import forest_from_config, generate_plot_trees, truth_table
 
@@ -52,8 +52,7 @@ def main(argv=None) -> int:
         scene = R.restyle_for(base, sensor, phys[sensor])
         runs = []
         for sv in R.airborne_survey(plot, sensor, st["recordings"][sensor], phys[sensor], a.seed):
-            res = simulate(scene, survey_from_dict(sv), keep_hits=True, region=R._recording_region(plot))
-            runs.append((sv, *res.hit_pulses()))
+            runs.append((sv, *trace_hits(scene, survey_from_dict(sv), region=R._recording_region(plot))))
         store[sensor] = (scene.part_table(), runs)
 
     def metrics(sensor, overrides):

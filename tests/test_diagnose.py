@@ -171,6 +171,51 @@ def test_ground_observables_see_range_and_strip_noise():
     assert out["clean"]["ground_dz_lines"] < 0.02 and out["range"]["ground_dz_lines"] < 0.06
 
 
+def test_disc_selection_under_the_crown_equals_brute_force():
+    from vlsforest.diagnose.features import _within
+    from vlsforest.extract import _ColumnIndex
+
+    rng = np.random.default_rng(6)
+    xy = np.round(rng.uniform(-10, 10, (30000, 2)), 2)
+    for k, (cx, cy, r) in enumerate([(0.0, 0.0, 1.0), (3.3, -2.7, 2.5), (9.9, 9.9, 1.5), (0.5, 0.5, 0.5)]):
+        xy[4 * k:4 * k + 4] = [[cx + r, cy], [cx - r, cy], [cx, cy + r], [cx, cy - r]]  # on the circle
+    idx = _ColumnIndex(xy)
+    for cx, cy, r in [(0.0, 0.0, 1.0), (3.3, -2.7, 2.5), (9.9, 9.9, 1.5), (0.5, 0.5, 0.5), (-30, 0, 2)]:
+        want = np.flatnonzero(np.sum((xy - [cx, cy]) ** 2, axis=1) <= r ** 2)
+        assert np.array_equal(_within(xy, idx, cx, cy, r), want)
+
+
+def test_trace_cache_merges_equal_settings_and_keeps_the_two_used_last(monkeypatch, tmp_path):
+    import vlsforest.sim as vsim
+    from vlsforest.diagnose import core
+
+    traced = []
+
+    def fake_trace_hits(scene, survey, **kw):
+        traced.append(survey.scanner.beam_divergence_mrad)
+        return {"slot": np.arange(3)}, {"pulse": np.zeros(4, np.int32)}
+
+    monkeypatch.setattr(vsim, "trace_hits", fake_trace_hits)
+    ps = object.__new__(core._PlotSim)
+    ps.p = core.PlotInput("Q", tmp_path, tmp_path, tmp_path, tmp_path, 0.3)
+    ps.survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3}, "seed": 0,
+                 "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
+    ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
+    ps._traces, ps._sims, ps.n_traced, ps.log = {}, {}, 0, lambda msg: None
+    div = lambda v: {"beam_divergence": {"scale": v}}  # noqa: E731
+    ps._trace({})
+    ps._trace(div(1.0))  # the survey as given: no new trace
+    assert ps.n_traced == 1
+    ps._trace(div(2.0))
+    ps._trace({})  # still held
+    ps._trace(div(3.0))  # evicts scale 2 (used longer ago than the baseline)
+    ps._trace({})
+    ps._trace(div(2.0))
+    assert ps.n_traced == 4 and len(ps._traces) == 2
+    base = vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad
+    assert traced == [base, tuple(2 * np.array(base)), tuple(3 * np.array(base)), tuple(2 * np.array(base))]
+
+
 # ------------------------------------------------------------------------------------ library
 def test_library_reads_baselines_and_applies_values():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from vlsforest.errors import InputDataError
-from vlsforest.sim import Material, Scene, redetect, simulate
+from vlsforest.sim import Material, Scene, redetect, simulate, trace_hits
 from vlsforest.sim.survey import survey_from_dict
 from vlsforest.sim.waveform import C_M_PER_NS
 
@@ -169,6 +169,31 @@ def test_hit_pulses_keep_what_redetect_needs():
     assert np.array_equal(again.points["object_id"], base.points["object_id"])
     with pytest.raises(InputDataError, match="keep_hits"):
         simulate(sc, sv, workers=1).hit_pulses()
+
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_trace_hits_equals_hit_pulses_without_detection(workers):
+    rng = np.random.default_rng(2)
+    sc = Scene()
+    ijk = np.unique(np.floor(rng.uniform([-2, -2, 5], [2, 2, 12], size=(300, 3)) / 0.5).astype(int), axis=0)
+    sc.add_voxels(2, ijk, np.zeros(3), 0.5, material=Material(0.6))
+    ov = {"prf_hz": 20000, "scan_freq_hz": 40, "scan_angle_deg": 20.0, "max_scan_angle_deg": 20.0,
+          "range_min_m": 0.0}
+    sv = _survey(ov, _line(-4, 4, 80.0), speed=4.0)
+    # small blocks: several of them, some without any hit
+    base = simulate(sc, sv, workers=1, keep_hits=True, block_slots=997)
+    want_p, want_h = base.hit_pulses()
+    pulses, hits = trace_hits(sc, sv, workers=workers, block_slots=997)
+    assert hits["pulse"].dtype == np.int32
+    assert set(pulses) == set(want_p) - {"n_returns"} and set(hits) == set(want_h)
+    for k in pulses:
+        assert np.array_equal(pulses[k], want_p[k]), k
+    for k in hits:
+        assert np.array_equal(hits[k], want_h[k]), k
+    again = redetect(sc.part_table(), pulses, hits, sv, block_slots=997)
+    assert len(again.points["xyz"]) > 100
+    assert np.array_equal(again.points["xyz"], base.points["xyz"])
 
 
 def test_threshold_removes_weakest_first():

@@ -329,6 +329,42 @@ def test_extract_reference_radius_and_nearest_tree():
     assert extract_simulated(sim, {51: 5, 52: 5, 81: 8}).tolist() == [5, 5, 0, 0, 8]
 
 
+def test_column_index_boxes_miss_no_point():
+    from vlsforest.extract import _ColumnIndex
+
+    rng = np.random.default_rng(5)
+    xy = np.round(rng.uniform(-20, 30, size=(20000, 2)), 1)  # many points exactly on column edges
+    xy[::97] = np.nan
+    idx = _ColumnIndex(xy, cell=1.0)
+    for k in range(60):
+        x0, y0 = np.round(rng.uniform(-25, 32, 2), 1 if k % 2 else 3)
+        x1, y1 = x0 + rng.uniform(0, 8), y0 + (0.0 if k % 3 == 0 else rng.uniform(0, 8))
+        want = np.flatnonzero((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1))
+        got = idx.box(x0, y0, x1, y1)
+        assert np.isin(want, got).all()
+        assert np.isfinite(xy[got]).all() and len(np.unique(got)) == len(got)
+        # only whole columns that meet the box: nothing farther than one column away
+        if len(got):
+            assert (xy[got, 0] > x0 - 1.0).all() and (xy[got, 0] < x1 + 1.0).all()
+    assert len(idx.box(100, 100, 110, 110)) == 0 and len(_ColumnIndex(np.zeros((0, 2))).box(0, 0, 1, 1)) == 0
+
+
+def test_extract_reference_matches_brute_force():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(8)
+    trees = {tid: rng.normal([6.0 * (tid % 4), 5.0 * (tid // 4), 10.0], [1.5, 1.5, 4.0], size=(400, 3))
+             for tid in range(1, 13)}
+    pts = rng.uniform([-5, -5, 0], [25, 20, 20], size=(30000, 3))
+    got = extract_reference(trees, PointCloud(pts, {}), 0.5)
+    ids = sorted(trees)
+    d = np.stack([cKDTree(trees[t]).query(pts)[0] for t in ids], axis=1)
+    best = np.argmin(d, axis=1)  # ties: the smaller id (first column)
+    want = np.where(d[np.arange(len(pts)), best] <= 0.5, np.array(ids)[best], 0)
+    assert (want > 0).sum() > 500 and len(np.unique(want)) == 13
+    assert np.array_equal(got, want)
+
+
 # --------------------------------------------------------------------------------------------
 # re-flying a recorded trajectory
 # --------------------------------------------------------------------------------------------

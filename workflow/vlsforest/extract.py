@@ -97,6 +97,38 @@ def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.
                                        "height", "dist"])
 
 
+class _ColumnIndex:
+    """Points bucketed into square columns of side ``cell`` (m), to gather the points of a
+    horizontal box without scanning the whole cloud.
+
+    :meth:`box` returns a superset of the points inside the box (whole columns); the caller
+    applies the exact test. Column indices grow monotonically with x and y in floating point, so
+    no point inside the box is missed.
+    """
+
+    def __init__(self, xy: np.ndarray, cell: float = 1.0):
+        self.cell = float(cell)
+        ok = np.isfinite(xy).all(axis=1)  # points without finite coordinates are in no column
+        self.lo = xy[ok].min(axis=0) if ok.any() else np.zeros(2)
+        ij = np.floor((np.where(ok[:, None], xy, self.lo) - self.lo) / self.cell).astype(np.int64)
+        self.nx, self.ny = (int(v) + 1 for v in ij.max(axis=0)) if len(xy) else (0, 0)
+        key = np.where(ok, ij[:, 0] * self.ny + ij[:, 1], -1)
+        self.order = np.argsort(key, kind="stable")
+        self.key = key[self.order]
+
+    def box(self, x0, y0, x1, y1) -> np.ndarray:
+        """Indices of the points in the columns that meet [x0, x1] × [y0, y1] (unordered)."""
+        i0, j0 = np.floor((np.array([x0, y0]) - self.lo) / self.cell).astype(np.int64)
+        i1, j1 = np.floor((np.array([x1, y1]) - self.lo) / self.cell).astype(np.int64)
+        i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, self.nx - 1), min(j1, self.ny - 1)
+        if i0 > i1 or j0 > j1:
+            return np.zeros(0, np.int64)
+        rows = np.arange(i0, i1 + 1, dtype=np.int64) * self.ny
+        starts = np.searchsorted(self.key, rows + j0, side="left")
+        ends = np.searchsorted(self.key, rows + j1, side="right")
+        return np.concatenate([self.order[a:b] for a, b in zip(starts, ends)])
+
+
 def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np.ndarray:
     """Label the points of a real recording by their nearest target tree.
 
@@ -127,6 +159,7 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np
         return label
     xyz = cloud.xyz
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    columns = _ColumnIndex(xyz[:, :2])  # a tree's box then reads only the points of its columns
     for tid in sorted(tree_points):
         pts = np.asarray(tree_points[tid], dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
@@ -136,7 +169,8 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np
         tlo, thi = pts.min(axis=0) - radius, pts.max(axis=0) + radius
         if np.any(thi < lo) or np.any(tlo > hi):
             continue
-        cand = np.flatnonzero(np.all((xyz >= tlo) & (xyz <= thi), axis=1))
+        near = columns.box(tlo[0], tlo[1], thi[0], thi[1])
+        cand = near[np.all((xyz[near] >= tlo) & (xyz[near] <= thi), axis=1)]
         if len(cand) == 0:
             continue
         d, _ = cKDTree(pts).query(xyz[cand], k=1, distance_upper_bound=radius)

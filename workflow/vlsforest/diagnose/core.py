@@ -36,7 +36,6 @@ from __future__ import annotations
 import json
 import sys
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -159,6 +158,25 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
 
 
 # ------------------------------------------------------------------------------------ simulation
+def _release_freed_memory():
+    """Give freed heap pages back to the system (glibc only; elsewhere nothing happens).
+
+    A trace gathers its hits from ≈ 20 000-pulse blocks of a few MB each; glibc serves such
+    sizes from its heap once its adaptive mmap threshold has grown, and keeps the freed pages
+    mapped after the blocks are joined, so the process would hold them for the rest of the run.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        trim = None
+    if trim is not None:
+        trim(0)
+
+
 class _PlotSim:
     """One plot: its scene, survey, trees and real observables; simulations with caching."""
 
@@ -195,7 +213,8 @@ class _PlotSim:
         real = read_las(p.real)
         self.real = self._features(cloud_arrays(real))
         self._parts = self.scene.part_table()
-        self._traces: OrderedDict = OrderedDict()
+        self._traces: dict = {}
+        self._sims: dict = {}
         self.n_traced = 0
         self.n_redetected = 0
 
@@ -225,32 +244,60 @@ class _PlotSim:
         return Scene.from_yaml(self.p.scene, voxel_transform=lambda m: lib.occlusion_corrected(m, gain)
                                if m.half is not None else m)
 
-    def features(self, assign: dict) -> pd.DataFrame:
-        from vlsforest.sim import redetect, simulate, survey_from_dict
+    def _key(self, assign: dict):
+        """What a simulation with ``assign`` runs, as a key: the scanner settings (as the survey
+        resolves them), the rest of the survey mapping and the scene edits. Assignments with
+        equal keys give the same points (e.g. a divergence scale of 1.0 and the survey as given).
 
-        trace_part = {k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"}
-        key = json.dumps(trace_part, sort_keys=True)
-        if key not in self._traces:
-            s, edits = self._survey_for(trace_part)
-            sv = survey_from_dict(s, base_dir=self.survey_dir)
-            t0 = time.perf_counter()
-            res = simulate(self._scene_for(edits), sv, seed=self.seed, workers=self.workers, keep_hits=True,
-                           region=self.region)
-            self._traces[key] = res.hit_pulses()
-            self.n_traced += 1
-            self.log(f"  {self.p.name}: traced {json.dumps(trace_part)} in {time.perf_counter() - t0:.1f} s")
-            while len(self._traces) > 3:
-                self._traces.popitem(last=False)
-        pulses, hits = self._traces[key]
+        Returns the key, the survey and the scene edits.
+        """
+        from vlsforest.sim import survey_from_dict
+
         s, edits = self._survey_for(assign)
         sv = survey_from_dict(s, base_dir=self.survey_dir)
-        parts = dict(self._parts, reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
-        if "specularity" in edits:
-            parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
-            parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
-        res = redetect(parts, pulses, hits, sv, seed=self.seed)
-        self.n_redetected += 1
-        return self._features(cloud_arrays(res))
+        rest = {k: v for k, v in s.items() if k != "overrides"}
+        return json.dumps([repr(sv.scanner), rest, edits], sort_keys=True, default=str), sv, edits
+
+    def _trace(self, trace_part: dict):
+        """The pulses with hits and their hits for the trace-side parameters ``trace_part``.
+
+        Keeps the two traces used last: a trace of a default-forest plot holds ≈ 120 M sub-ray
+        hits (≈ 3.5 GB); the search alternates between its current baseline (the simulation as
+        given, then with the accepted effect) and one trace-side value after the other, and
+        features are cached separately.
+        """
+        from vlsforest.sim import trace_hits
+
+        key, sv, edits = self._key(trace_part)
+        if key in self._traces:
+            self._traces[key] = self._traces.pop(key)  # now the most recently used
+        else:
+            while len(self._traces) > 1:
+                del self._traces[next(iter(self._traces))]  # free the least recent before tracing
+            t0 = time.perf_counter()
+            self._traces[key] = trace_hits(self._scene_for(edits), sv, seed=self.seed, workers=self.workers,
+                                           region=self.region)
+            _release_freed_memory()
+            self.n_traced += 1
+            self.log(f"  {self.p.name}: traced {json.dumps(trace_part)} in {time.perf_counter() - t0:.1f} s "
+                     f"({len(self._traces[key][1]['pulse']):,} sub-ray hits)")
+        return self._traces[key]
+
+    def features(self, assign: dict) -> pd.DataFrame:
+        from vlsforest.sim import redetect
+
+        key, sv, edits = self._key(assign)
+        if key not in self._sims:
+            pulses, hits = self._trace({k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"})
+            parts = dict(self._parts,
+                         reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
+            if "specularity" in edits:
+                parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
+                parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
+            res = redetect(parts, pulses, hits, sv, seed=self.seed)
+            self.n_redetected += 1
+            self._sims[key] = self._features(cloud_arrays(res))
+        return self._sims[key]
 
 
 class _Study:

@@ -199,6 +199,15 @@ def _ground_stats(xyz, line, cell=1.0):
     return sd, dz
 
 
+def _within(xy, columns, cx, cy, r):
+    """Indices (ascending) of the points of ``xy`` within distance ``r`` of (cx, cy); only the
+    columns of ``columns`` (a :class:`~vlsforest.extract._ColumnIndex` of ``xy``) around the
+    disc are tested."""
+    pad = r + 1e-6 + 1e-12 * max(abs(cx), abs(cy))  # the columns only pre-select: the disc test decides
+    near = columns.box(cx - pad, cy - pad, cx + pad, cy + pad)
+    return np.sort(near[np.sum((xy[near] - [cx, cy]) ** 2, axis=1) <= r ** 2])
+
+
 def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.DataFrame:
     """Observables of every tree (rows) — see the module docstring for the columns.
 
@@ -217,6 +226,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.D
     pandas.DataFrame
         Index ``tree_id``, columns :data:`FEATURES`; NaN where a tree has too few points.
     """
+    from vlsforest.extract import _ColumnIndex
     from vlsforest.metrics import tree_metrics
 
     xyz = arrays["xyz"]
@@ -231,6 +241,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.D
     gxyz = xyz[gsel]
     gline = np.asarray(arrays["point_source_id"])[gsel]
     allxy = xyz[:, :2]
+    columns, gcolumns = _ColumnIndex(allxy), _ColumnIndex(gxyz[:, :2])
     for (_, t), b, e in zip(trees.iterrows(), bounds, ends):
         idx = order[b:e]
         row = {"tree_id": int(t.tree_id)}
@@ -268,11 +279,10 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.D
             ex = np.percentile(crown[:, 0], 95) - np.percentile(crown[:, 0], 5)
             ey = np.percentile(crown[:, 1], 95) - np.percentile(crown[:, 1], 5)
             row["crown_extent_ratio"] = float(ex / ey) if ey > 0 else np.nan
-        r2 = float(t.crown_radius) ** 2
-        col = np.sum((allxy - [t.x, t.y]) ** 2, axis=1) <= r2
-        if col.sum() >= 20:
+        col = _within(allxy, columns, float(t.x), float(t.y), float(t.crown_radius))
+        if len(col) >= 20:
             row["ground_share_pct"] = 100.0 * float(np.mean(arrays["classification"][col] == 2))
-        gcol = np.sum((gxyz[:, :2] - [t.x, t.y]) ** 2, axis=1) <= (float(t.crown_radius) + 2.0) ** 2
+        gcol = _within(gxyz[:, :2], gcolumns, float(t.x), float(t.y), float(t.crown_radius) + 2.0)
         row["ground_sd_local"], row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])
         rows.append(row)
     df = pd.DataFrame(rows).set_index("tree_id")

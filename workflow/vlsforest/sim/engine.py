@@ -129,7 +129,10 @@ class SimulationResult:
 class _Job:
     """Everything a worker needs, shared with forked workers through a module global."""
 
-    def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True, region=None):
+    def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True, region=None,
+                 hits_only=False):
+        self.hits_only = bool(hits_only)
+        keep_hits = keep_hits or self.hits_only
         self.keep_pulses = keep_pulses or keep_hits
         self.scene = scene
         self.survey = survey
@@ -194,6 +197,8 @@ def _run_block(b: int):
         n_ret = np.zeros(len(slots), np.int16)
         n_ret[live] = n_live
         return points, dict(slot=slots, n_returns=n_ret), None, len(live) * job.pattern.n
+    if job.hits_only:
+        return _hit_pulses_block(job, job.survey.pulses(start, stop))
     return _trace_and_detect(job, job.survey.pulses(start, stop), rng)
 
 
@@ -267,14 +272,7 @@ def _trace_and_detect(job: _Job, batch, rng):
         else:
             pulses = dict(slot=batch.slot, n_returns=n_ret)
         return points, pulses, None, nl * ns
-    traced = _cast(job, batch.origin[live], batch.direction[live], batch.scan_dir[live])
-    t, part, cos_inc = traced[:3]
-    label = traced[3] if job.labels else None
-    idx, hpulse, ptr = _collect_hits(t, float(job.survey.scanner.range_min_m), ns, live.astype(np.int64), m)
-    hits = dict(pulse=hpulse, subray=(idx % ns).astype(np.int16), range=t[idx],
-                cos_inc=cos_inc[idx].astype(np.float32), part=part[idx])
-    if job.labels:
-        hits["label"] = label[idx]
+    hits, ptr = _block_hits(job, batch, live)
     points, n_ret = _detect(job, batch, ptr, hits, rng)
     if job.keep_pulses:
         pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
@@ -283,6 +281,43 @@ def _trace_and_detect(job: _Job, batch, rng):
     else:
         pulses = dict(slot=batch.slot, n_returns=n_ret)
     return points, pulses, (hits if job.keep_hits else None), nl * ns
+
+
+def _block_hits(job: _Job, batch, live):
+    """Trace the sub-ray fans of the pulses ``live`` of ``batch``: the valid hits (pulse-major,
+    ``pulse`` = batch row) and their CSR offsets over all rows of the batch."""
+    ns = job.pattern.n
+    traced = _cast(job, batch.origin[live], batch.direction[live], batch.scan_dir[live])
+    t, part, cos_inc = traced[:3]
+    idx, hpulse, ptr = _collect_hits(t, job.range_min, ns, live.astype(np.int64), len(batch))
+    hits = dict(pulse=hpulse, subray=(idx % ns).astype(np.int16), range=t[idx],
+                cos_inc=cos_inc[idx].astype(np.float32), part=part[idx])
+    if job.labels:
+        hits["label"] = traced[3][idx]
+    return hits, ptr
+
+
+def _hit_pulses_block(job: _Job, batch):
+    """Block result of :func:`trace_hits`: the pulses with hits and their hits, no detection.
+
+    ``hits["pulse"]`` is the row in the block's kept pulses (int32).
+    """
+    m = len(batch)
+    live = (np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi, job.max_offset))
+            if m else np.zeros(0, np.int64))
+    if len(live) == 0:
+        pulses, hits = _empty_block(job)[1:3]
+        pulses.pop("n_returns")
+        hits["pulse"] = hits["pulse"].astype(np.int32)
+        return None, pulses, hits, 0
+    hits, ptr = _block_hits(job, batch, live)
+    counts = np.diff(ptr)
+    keep = np.flatnonzero(counts > 0)
+    hits["pulse"] = np.repeat(np.arange(len(keep), dtype=np.int32), counts[keep])
+    pulses = dict(slot=batch.slot[keep], gps_time=batch.gps_time[keep], origin=batch.origin[keep],
+                  direction=batch.direction[keep], scan_dir=batch.scan_dir[keep],
+                  scan_angle=batch.scan_angle_deg[keep], source_id=batch.source_id[keep])
+    return None, pulses, hits, len(live) * job.pattern.n
 
 
 @numba.njit(cache=True)
@@ -441,6 +476,59 @@ def _concat(dicts):
     return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]}
 
 
+def _check_region(region):
+    if region is None:
+        return None
+    region = np.asarray(region, dtype=np.float64)
+    if region.shape != (4,) or not (region[0] < region[2] and region[1] < region[3]):
+        raise ConfigError(f"region must be (xmin, ymin, xmax, ymax) with min < max, got {region!r}")
+    return region
+
+
+def _run_blocks(job: _Job, workers, progress, t0):
+    """Run every block of ``job`` (forked workers when more than one) and yield the block
+    results in block order."""
+    global _JOB
+    survey, scene = job.survey, job.scene
+    n_blocks = -(-survey.n_slots // job.block_slots)
+    if hasattr(scene, "prepare"):
+        scene.prepare()  # build voxel grids and the Embree BVH once, before forking
+    workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
+    _JOB = job
+    pool = None
+    try:
+        if workers <= 1 or n_blocks <= 1:
+            it = map(_run_block, range(n_blocks))
+        else:
+            _warm_up(job, n_blocks)
+            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
+            it = pool.map(_run_block, range(n_blocks))
+        for k, r in enumerate(it):
+            yield r
+            if progress and (k % max(1, n_blocks // 10) == 0 or k == n_blocks - 1):
+                tty = sys.stderr.isatty()
+                print(f"{chr(13) if tty else ''}simulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %, "
+                      f"{time.perf_counter() - t0:.0f} s)", end="" if tty else "\n", file=sys.stderr, flush=True)
+    except BrokenProcessPool:
+        raise VlsforestError("a simulation worker process died (out of memory?); "
+                             "try fewer workers (--workers 1)") from None
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        _JOB = None
+    if progress and sys.stderr.isatty():
+        print(file=sys.stderr)
+
+
+def _concat_freeing(dicts):
+    """Concatenate block dicts key by key, dropping each key's block arrays once joined (peak
+    memory: the result plus one key's blocks, instead of twice the result)."""
+    out = {}
+    for k in list(dicts[0]):
+        out[k] = np.concatenate([d.pop(k) for d in dicts])
+    return out
+
+
 def simulate(scene, survey, seed: int | None = None, workers: int | None = None, keep_hits: bool = False,
              block_slots: int = 20000, progress: bool = False, keep_pulses: bool = True,
              region=None) -> SimulationResult:
@@ -472,43 +560,10 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     -------
     SimulationResult
     """
-    global _JOB
     t0 = time.perf_counter()
     seed = survey.seed if seed is None else seed
-    if region is not None:
-        region = np.asarray(region, dtype=np.float64)
-        if region.shape != (4,) or not (region[0] < region[2] and region[1] < region[3]):
-            raise ConfigError(f"region must be (xmin, ymin, xmax, ymax) with min < max, got {region!r}")
-    job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses, region)
-    n_blocks = -(-survey.n_slots // job.block_slots)
-    if hasattr(scene, "prepare"):
-        scene.prepare()  # build voxel grids and the Embree BVH once, before forking
-    workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
-    _JOB = job
-    results = []
-    try:
-        if workers <= 1 or n_blocks <= 1:
-            it = map(_run_block, range(n_blocks))
-            pool = None
-        else:
-            _warm_up(job, n_blocks)
-            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
-            it = pool.map(_run_block, range(n_blocks))
-        for k, r in enumerate(it):
-            results.append(r)
-            if progress and (k % max(1, n_blocks // 10) == 0 or k == n_blocks - 1):
-                tty = sys.stderr.isatty()
-                print(f"{chr(13) if tty else ''}simulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %, "
-                      f"{time.perf_counter() - t0:.0f} s)", end="" if tty else "\n", file=sys.stderr, flush=True)
-    except BrokenProcessPool:
-        raise VlsforestError("a simulation worker process died (out of memory?); "
-                             "try fewer workers (--workers 1)") from None
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        _JOB = None
-    if progress and sys.stderr.isatty():
-        print(file=sys.stderr)
+    job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses, _check_region(region))
+    results = list(_run_blocks(job, workers, progress, t0))
     if not results:
         results = [_empty_block(job)]
     points = _concat([r[0] for r in results])
@@ -526,6 +581,48 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     timings = dict(total=time.perf_counter() - t0, n_pulses=len(pulses["slot"]), n_rays=n_rays,
                    n_points=len(points["xyz"]))
     return SimulationResult(points, pulses, hits, timings)
+
+
+def trace_hits(scene, survey, seed: int | None = None, workers: int | None = None, block_slots: int = 20000,
+               region=None, progress: bool = False) -> tuple[dict, dict]:
+    """Trace a survey and keep only what :func:`redetect` needs: no detection, no points.
+
+    Gives what ``simulate(..., keep_hits=True).hit_pulses()`` gives (``redetect`` on it
+    returns the same points bit for bit), without building the points, the zero-hit pulses or
+    a second copy of the hits: each block keeps only its pulses with hits, and the blocks are
+    joined key by key. For fitting detection settings to a large recording (the diagnosis
+    keeps such traces in memory).
+
+    Parameters
+    ----------
+    scene, survey, seed, workers, block_slots, region, progress
+        As in :func:`simulate`.
+
+    Returns
+    -------
+    pulses : dict
+        The pulse geometry of the pulses with at least one hit (``slot``, ``gps_time``,
+        ``origin``, ``direction``, ``scan_dir``, ``scan_angle``, ``source_id``), in slot order.
+    hits : dict
+        Their sub-ray hits (``pulse`` — the row in ``pulses``, int32 unless the survey has
+        2³¹ slots or more —, ``subray``, ``range``, ``cos_inc``, ``part``, [``label``]).
+    """
+    t0 = time.perf_counter()
+    seed = survey.seed if seed is None else seed
+    job = _Job(scene, survey, seed, True, block_slots, True, _check_region(region), hits_only=True)
+    index = np.int32 if survey.n_slots < 2 ** 31 else np.int64
+    pulse_parts, hit_parts, off = [], [], 0
+    for _, pulses, hits, _ in _run_blocks(job, workers, progress, t0):
+        hits["pulse"] = hits["pulse"].astype(index) + index(off)
+        off += len(pulses["slot"])
+        pulse_parts.append(pulses)
+        hit_parts.append(hits)
+    if not pulse_parts:  # a survey without pulse slots
+        _, pulses, hits, _ = _empty_block(job)
+        pulses.pop("n_returns")
+        hits["pulse"] = hits["pulse"].astype(index)
+        pulse_parts, hit_parts = [pulses], [hits]
+    return _concat_freeing(pulse_parts), _concat_freeing(hit_parts)
 
 
 class _StoredBatch:
@@ -584,10 +681,12 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
     blocks = pulses["slot"] // job.block_slots
     hit_ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
     np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=hit_ptr[1:])
+    if np.any(np.diff(pulses["slot"]) <= 0) or np.any(np.diff(hits["pulse"]) < 0):
+        raise InputDataError("the stored pulses must be in ascending slot order and the hits grouped by pulse "
+                             "in pulse order (as simulate and trace_hits give them)")
     pts, n_ret = [], []
-    for b in np.unique(blocks):
-        rows = np.flatnonzero(blocks == b)
-        r0, r1 = rows[0], rows[-1] + 1
+    ub, first = np.unique(blocks, return_index=True)
+    for b, r0, r1 in zip(ub, first, np.r_[first[1:], len(blocks)]):
         batch = _StoredBatch(pulses, slice(r0, r1))
         h0, h1 = hit_ptr[r0], hit_ptr[r1]
         h = {k: v[h0:h1] for k, v in hits.items()}
