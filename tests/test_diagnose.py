@@ -185,7 +185,7 @@ def test_disc_selection_under_the_crown_equals_brute_force():
         assert np.array_equal(_within(xy, idx, cx, cy, r), want)
 
 
-def test_trace_cache_merges_equal_settings_and_keeps_the_two_used_last(monkeypatch, tmp_path):
+def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeypatch, tmp_path):
     import vlsforest.sim as vsim
     from vlsforest.diagnose import core
 
@@ -201,19 +201,23 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_two_used_last(monkeypat
     ps.survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3}, "seed": 0,
                  "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
     ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
-    ps._traces, ps._sims, ps.n_traced, ps.log = {}, {}, 0, lambda msg: None
+    ps._traces, ps._sims, ps._pinned, ps.n_traced, ps.log = {}, {}, None, 0, lambda msg: None
     div = lambda v: {"beam_divergence": {"scale": v}}  # noqa: E731
+    ps.pin({"range_noise": {"sigma_m": 0.1}})  # stored-hit candidates do not change the trace
     ps._trace({})
     ps._trace(div(1.0))  # the survey as given: no new trace
     assert ps.n_traced == 1
     ps._trace(div(2.0))
-    ps._trace({})  # still held
-    ps._trace(div(3.0))  # evicts scale 2 (used longer ago than the baseline)
+    ps._trace(div(3.0))  # evicts scale 2, keeps the pinned baseline
     ps._trace({})
+    assert ps.n_traced == 3 and len(ps._traces) == 2
     ps._trace(div(2.0))
-    assert ps.n_traced == 4 and len(ps._traces) == 2
-    base = vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad
-    assert traced == [base, tuple(2 * np.array(base)), tuple(3 * np.array(base)), tuple(2 * np.array(base))]
+    ps.pin(div(2.0))  # a new baseline (an accepted effect): the old one may go
+    ps._trace(div(3.0))
+    ps._trace(div(2.0))
+    assert ps.n_traced == 5 and len(ps._traces) == 2
+    base = np.array(vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad)
+    assert traced == [tuple(base), tuple(2 * base), tuple(3 * base), tuple(2 * base), tuple(3 * base)]
 
 
 # ------------------------------------------------------------------------------------ library

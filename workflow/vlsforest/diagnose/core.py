@@ -158,6 +158,11 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
 
 
 # ------------------------------------------------------------------------------------ simulation
+def _trace_part(assign: dict) -> dict:
+    """The candidates of ``assign`` that need a new ray trace (the rest re-renders stored hits)."""
+    return {k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"}
+
+
 def _release_freed_memory():
     """Give freed heap pages back to the system (glibc only; elsewhere nothing happens).
 
@@ -215,6 +220,7 @@ class _PlotSim:
         self._parts = self.scene.part_table()
         self._traces: dict = {}
         self._sims: dict = {}
+        self._pinned = None
         self.n_traced = 0
         self.n_redetected = 0
 
@@ -261,19 +267,17 @@ class _PlotSim:
     def _trace(self, trace_part: dict):
         """The pulses with hits and their hits for the trace-side parameters ``trace_part``.
 
-        Keeps the two traces used last: a trace of a default-forest plot holds ≈ 120 M sub-ray
-        hits (≈ 3.5 GB); the search alternates between its current baseline (the simulation as
-        given, then with the accepted effect) and one trace-side value after the other, and
-        features are cached separately.
+        Keeps two traces: the search's current baseline (:meth:`pin`) and the last other one. A
+        trace of a default-forest plot holds ≈ 120 M sub-ray hits (≈ 3.5 GB); the search renders
+        every stored-hit candidate on its baseline's trace and visits trace-side values one
+        after the other (their features are cached separately).
         """
         from vlsforest.sim import trace_hits
 
         key, sv, edits = self._key(trace_part)
-        if key in self._traces:
-            self._traces[key] = self._traces.pop(key)  # now the most recently used
-        else:
-            while len(self._traces) > 1:
-                del self._traces[next(iter(self._traces))]  # free the least recent before tracing
+        if key not in self._traces:
+            for k in [k for k in self._traces if k != self._pinned]:
+                del self._traces[k]  # free it before tracing the next
             t0 = time.perf_counter()
             self._traces[key] = trace_hits(self._scene_for(edits), sv, seed=self.seed, workers=self.workers,
                                            region=self.region)
@@ -283,12 +287,16 @@ class _PlotSim:
                      f"({len(self._traces[key][1]['pulse']):,} sub-ray hits)")
         return self._traces[key]
 
+    def pin(self, assign: dict) -> None:
+        """Keep the trace of ``assign`` (the search's baseline) cached until the next pin."""
+        self._pinned = self._key(_trace_part(assign))[0]
+
     def features(self, assign: dict) -> pd.DataFrame:
         from vlsforest.sim import redetect
 
         key, sv, edits = self._key(assign)
         if key not in self._sims:
-            pulses, hits = self._trace({k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"})
+            pulses, hits = self._trace(_trace_part(assign))
             parts = dict(self._parts,
                          reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
             if "specularity" in edits:
@@ -307,6 +315,11 @@ class _Study:
         self.plots = [_PlotSim(p, setup.seed, setup.workers, log) for p in setup.plots]
         self.real = pd.concat([p.real for p in self.plots])
         self._cache: dict = {}
+
+    def pin(self, assign: dict) -> None:
+        """Keep the traces of ``assign`` (the search's current baseline) cached in every plot."""
+        for p in self.plots:
+            p.pin(assign)
 
     def sim(self, assign: dict) -> pd.DataFrame:
         key = json.dumps(assign, sort_keys=True)
@@ -470,6 +483,7 @@ def diagnose(setup: Setup, log=None) -> dict:
         cands = [c for c in cands if c.name != "tls_occlusion"]
         log("tls_occlusion left out: the scenes have no PAD-scaled voxel crowns")
     base: dict = {}
+    study.pin(base)
     D0 = study.residual(base)
     have = np.isfinite(study.real.to_numpy(float)).any(axis=1)
     n_trees = int(have.sum())
@@ -544,6 +558,7 @@ def diagnose(setup: Setup, log=None) -> dict:
             break
         accepted.append(cand.name)
         base = _merge(base, cand.name, allv)
+        study.pin(base)
         current_D = study.residual(base)
         remaining = [c for c in remaining if c.name != cand.name]
         if not remaining:
