@@ -353,6 +353,17 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
         path.write_text(yaml.safe_dump(bad))
         proc = snakemake_cli("-n", "--configfile", path, cwd=tmp_path)
         assert proc.returncode != 0 and f"Invalid configuration at '{msg}'" in proc.stdout + proc.stderr
+    # config/no-diagnosis.yaml merged over a config with the diagnosis on leaves only that job out
+    cfg["diagnosis"] = {"enabled": True, "method": "scaled", "scenarios": ["uls"], "folds": 3}
+    path.write_text(yaml.safe_dump(cfg))
+    counts = []
+    for files in ([path], [path, QUICK.parent / "no-diagnosis.yaml"]):
+        proc = snakemake_cli("-n", "--configfile", *files, "--quiet", "rules", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        counts.append(dict(line.split() for line in proc.stdout.splitlines() if len(line.split()) == 2
+                           and line.split()[1].isdigit()))
+    assert counts[0].get("diagnose") == "1" and "diagnose" not in counts[1]
+    assert int(counts[0]["total"]) == int(counts[1]["total"]) + 1
     assert not (tmp_path / "results").exists()
 
 
@@ -391,6 +402,9 @@ class _LinearStudy:
 
     def sim(self, assign):
         return pd.DataFrame(self.base + self._response(assign), index=self.index, columns=list(FEATURES))
+
+    def pin(self, assign):
+        self.pinned = json.loads(json.dumps(assign))  # the search's current baseline
 
     def residual(self, assign):
         return (self.real - self.sim(assign)).to_numpy(float)
@@ -484,8 +498,11 @@ def test_occlusion_corrected_scene_is_what_gets_traced(tmp_path):
 
 
 def test_logic_finds_two_hidden_effects(monkeypatch):
-    rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.08}, "waveform_window": {"window_ns": 3.5}}))
+    study = _LinearStudy({"range_noise": {"sigma_m": 0.08}, "waveform_window": {"window_ns": 3.5}})
+    rep = _run_logic(monkeypatch, study)
     assert set(rep["accepted"]) == {"range_noise", "waveform_window"}, rep["verdict"]
+    # the traces kept cached follow the search's baseline: both accepted effects at their fitted values
+    assert study.pinned == {e["name"]: e["parameters"] for e in rep["effects"] if e["accepted"]}
 
 
 def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ def plot_diagnosis(rep: dict, path) -> Path:
     ax.set_yticks(y, [("* " if n in mism else "") + n for n in names], fontsize=7)
     ax.axvline(0, color="k", lw=0.8)
     ax.set_xlabel("mean residual (real − simulated) / across-tree SD   (* = significant, BH q < 0.05)")
-    ax.set_title(f"{rep['scenario'].upper()}: {rep['verdict']}", fontsize=9)
+    ax.set_title(textwrap.fill(f"{rep['scenario'].upper()}: {rep['verdict']}", 90), fontsize=9)
     ax.invert_yaxis()
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
