@@ -257,30 +257,47 @@ def _trace_and_detect(job: _Job, batch, rng):
     ns = pat.n
     if m == 0:
         return _empty_block(job)
-    # like HELIOS++, pulses whose beam cone misses the scene's bounding box are not traced
-    live = np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi,
-                                          job.max_offset))
+    live = _live_rows(job, batch)
     nl = len(live)
     if job.fused:  # hits, energy, waveform and peaks in one pass over the cast
         points, n_live = _trace_fused(job, batch.subset(live), rng)
         n_ret = np.zeros(m, np.int16)
         n_ret[live] = n_live
-        if job.keep_pulses:
-            pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
-                          scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
-                          n_returns=n_ret)
-        else:
-            pulses = dict(slot=batch.slot, n_returns=n_ret)
-        return points, pulses, None, nl * ns
+        return points, _pulse_table(job, batch, n_ret), None, nl * ns
     hits, ptr = _block_hits(job, batch, live)
     points, n_ret = _detect(job, batch, ptr, hits, rng)
+    return points, _pulse_table(job, batch, n_ret), (hits if job.keep_hits else None), nl * ns
+
+
+def _pulse_geometry(batch, rows=slice(None)) -> dict:
+    """The stored pulse table's geometry columns for ``rows`` of ``batch`` (see
+    :class:`_StoredBatch` for the way back)."""
+    return dict(slot=batch.slot[rows], gps_time=batch.gps_time[rows], origin=batch.origin[rows],
+                direction=batch.direction[rows], scan_dir=batch.scan_dir[rows],
+                scan_angle=batch.scan_angle_deg[rows], source_id=batch.source_id[rows])
+
+
+def _pulse_table(job: _Job, batch, n_ret) -> dict:
+    """A block's pulse table: the geometry (when the job keeps it), the slots and returns."""
     if job.keep_pulses:
-        pulses = dict(slot=batch.slot, gps_time=batch.gps_time, origin=batch.origin, direction=batch.direction,
-                      scan_dir=batch.scan_dir, scan_angle=batch.scan_angle_deg, source_id=batch.source_id,
-                      n_returns=n_ret)
-    else:
-        pulses = dict(slot=batch.slot, n_returns=n_ret)
-    return points, pulses, (hits if job.keep_hits else None), nl * ns
+        return dict(_pulse_geometry(batch), n_returns=n_ret)
+    return dict(slot=batch.slot, n_returns=n_ret)
+
+
+def _live_rows(job: _Job, batch) -> np.ndarray:
+    """Rows of ``batch`` to trace: like HELIOS++, pulses whose beam cone misses the scene's
+    bounding box are not traced."""
+    if len(batch) == 0:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi, job.max_offset))
+
+
+def _no_hit_pulses(job: _Job):
+    """A block result of :func:`trace_hits` without any hit."""
+    _, pulses, hits, _ = _empty_block(job)
+    pulses.pop("n_returns")
+    hits["pulse"] = hits["pulse"].astype(np.int32)
+    return None, pulses, hits, 0
 
 
 def _block_hits(job: _Job, batch, live):
@@ -302,22 +319,14 @@ def _hit_pulses_block(job: _Job, batch):
 
     ``hits["pulse"]`` is the row in the block's kept pulses (int32).
     """
-    m = len(batch)
-    live = (np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi, job.max_offset))
-            if m else np.zeros(0, np.int64))
+    live = _live_rows(job, batch)
     if len(live) == 0:
-        pulses, hits = _empty_block(job)[1:3]
-        pulses.pop("n_returns")
-        hits["pulse"] = hits["pulse"].astype(np.int32)
-        return None, pulses, hits, 0
+        return _no_hit_pulses(job)
     hits, ptr = _block_hits(job, batch, live)
     counts = np.diff(ptr)
     keep = np.flatnonzero(counts > 0)
     hits["pulse"] = np.repeat(np.arange(len(keep), dtype=np.int32), counts[keep])
-    pulses = dict(slot=batch.slot[keep], gps_time=batch.gps_time[keep], origin=batch.origin[keep],
-                  direction=batch.direction[keep], scan_dir=batch.scan_dir[keep],
-                  scan_angle=batch.scan_angle_deg[keep], source_id=batch.source_id[keep])
-    return None, pulses, hits, len(live) * job.pattern.n
+    return None, _pulse_geometry(batch, keep), hits, len(live) * job.pattern.n
 
 
 @numba.njit(cache=True)
@@ -618,9 +627,7 @@ def trace_hits(scene, survey, seed: int | None = None, workers: int | None = Non
         pulse_parts.append(pulses)
         hit_parts.append(hits)
     if not pulse_parts:  # a survey without pulse slots
-        _, pulses, hits, _ = _empty_block(job)
-        pulses.pop("n_returns")
-        hits["pulse"] = hits["pulse"].astype(index)
+        _, pulses, hits, _ = _no_hit_pulses(job)
         pulse_parts, hit_parts = [pulses], [hits]
     return _concat_freeing(pulse_parts), _concat_freeing(hit_parts)
 

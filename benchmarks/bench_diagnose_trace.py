@@ -1,0 +1,80 @@
+"""Benchmark: one diagnosis trace and one stored-hit evaluation on a plot of a finished study.
+
+The diagnosis job keeps ray traces of a plot in memory (``sim.trace_hits``) and re-renders
+detection candidates from them; this measures, for one plot of a workflow run's outputs, the
+set-up (real observables), the trace of the simulation as given (time, sub-ray hits, memory held
+after it), and one evaluation from stored hits (re-detection + observables), with the same
+inputs the ``diagnose`` rule passes (scaled method, the scenario's extraction radius, the
+config's region margin).
+
+    python benchmarks/bench_diagnose_trace.py /path/to/study --plot P3 --scenario uls
+
+``/path/to/study`` is a workflow directory after ``snakemake`` (``results/`` inside, default
+config). About 2 min for P3 of the default forest on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+
+def _rss_gb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1]) / 1e6
+    return float("nan")
+
+
+def _peak_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("study", type=Path, help="workflow directory with results/")
+    ap.add_argument("--plot", default="P3")
+    ap.add_argument("--scenario", default="uls", choices=["als", "uls"])
+    ap.add_argument("--radius", type=float, default=None, help="extraction radius (default: 0.3 ULS, 0.5 ALS)")
+    ap.add_argument("--margin", type=float, default=10.0, help="region margin (config simulation.region_margin_m)")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+
+    from vlsforest.diagnose import core
+
+    study = a.study.resolve()
+    if not (study / "results" / a.plot / "segment").is_dir():
+        print(f"bench_diagnose_trace: {study}/results/{a.plot}/segment not found (run the workflow first)",
+              file=sys.stderr)
+        return 2
+    os.chdir(study)
+    r = f"results/{a.plot}"
+    setup = core.load_setup({"scenario": a.scenario, "seed": a.seed, "plots": {a.plot: {
+        "real": f"results/forest/plots/{a.plot}/{a.scenario}.laz", "scene": f"{r}/scaled/scene/scene.yaml",
+        "survey": f"{r}/surveys/{a.scenario}.yaml", "segment": f"{r}/segment",
+        "radius": a.radius or (0.3 if a.scenario == "uls" else 0.5), "margin": a.margin}}})
+    t0 = time.perf_counter()
+    ps = core._PlotSim(setup.plots[0], setup.seed, setup.workers, lambda m: print(m, flush=True))
+    print(f"set-up (real observables of {len(ps.trees)} trees): {time.perf_counter() - t0:.1f} s")
+    t0 = time.perf_counter()
+    ps.pin({})
+    ps.features({})
+    print(f"trace + first evaluation: {time.perf_counter() - t0:.1f} s; held after it {_rss_gb():.2f} GB, "
+          f"peak {_peak_gb():.2f} GB")
+    pulses, hits = ps._traces[ps._pinned]
+    held = sum(v.nbytes for d in (pulses, hits) for v in d.values()) / 1e9
+    print(f"the trace: {len(pulses['slot']):,} pulses with hits, {len(hits['pulse']):,} sub-ray hits, {held:.2f} GB")
+    t0 = time.perf_counter()
+    ps.features({"range_noise": {"sigma_m": 0.02}})
+    print(f"one evaluation from stored hits (range noise 2 cm): {time.perf_counter() - t0:.1f} s; "
+          f"peak {_peak_gb():.2f} GB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
