@@ -88,61 +88,59 @@ def _record(seed: int, case: str, workdir: Path) -> Path:
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--cases", nargs="+", default=["all"])
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vlsforest-bench-diagnose"))
-    ap.add_argument("--out", type=Path, default=None)
-    a = ap.parse_args(argv)
-    cases = list(CASES) if a.cases == ["all"] else a.cases
+def _run_case(seed: int, case: str, workdir: Path) -> dict:
+    """Diagnose one case blind; return its row (criteria measured against the hidden values)."""
     from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
 
-    rows = []
-    for seed in a.seeds:
-        wd = _quick_view(seed, a.workdir)
-        res = wd / "results" / "Q1"
-        cfg = a.workdir / f"seed{seed}" / "sim.yaml"
-        cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, "plots": {"Q1": {
-            "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
-            "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
-        for case in cases:
-            forest = _record(seed, case, a.workdir)
-            setup = load_setup(cfg, real_dir=forest / "plots")
-            if case in WITHHELD:
-                setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
-                setup.candidates_given = True
-            setup.oracle = CASES[case][1] or None
-            t0 = time.perf_counter()
-            rep = diagnose(setup, log=lambda m: None)
-            dt = time.perf_counter() - t0
-            top = rep["effects"][0] if rep["effects"] else {}
-            hidden = CASES[case][1]
-            fit_err = None
-            for name, vals in hidden.items():
-                e = next((x for x in rep["effects"] if x["name"] == name and x.get("parameters")), None)
-                if e:
-                    k = next(iter(vals))
-                    fit_err = abs(e["parameters"][k] - vals[k]) / abs(vals[k])
-                    break
-            o = rep.get("oracle") or {}
-            recov = (o["error_given"] - o["error_told_truth"]) if o else None
-            removed = None
-            first = next((e for e in rep["effects"] if e.get("accepted")), None)
-            if recov and first and first["heldout_error_before"] is not None:
-                removed = (first["heldout_error_before"] - first["heldout_error_after"]) / recov
-            row = {"seed": seed, "case": case, "verdict": rep["verdict"][:120],
-                   "top": top.get("name"), "top_group": top.get("group"),
-                   "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
-                   "fit_rel_error": fit_err, "recoverable_removed": removed,
-                   "traced": rep["cost"]["traced_simulations"], "seconds": round(dt, 1)}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-    import pandas as pd
+    wd = _quick_view(seed, workdir)
+    res = wd / "results" / "Q1"
+    cfg = workdir / f"seed{seed}" / "sim.yaml"
+    cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, "plots": {"Q1": {
+        "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
+        "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
+    forest = _record(seed, case, workdir)
+    setup = load_setup(cfg, real_dir=forest / "plots")
+    if case in WITHHELD:
+        setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
+        setup.candidates_given = True
+    setup.oracle = CASES[case][1] or None
+    t0 = time.perf_counter()
+    rep = diagnose(setup, log=lambda m: None)
+    dt = time.perf_counter() - t0
+    (workdir / f"seed{seed}" / case / "diagnosis.json").write_text(json.dumps(rep, indent=1))
+    top = rep["effects"][0] if rep["effects"] else {}
+    hidden = CASES[case][1]
+    fit_err = {}
+    for name, vals in hidden.items():
+        e = next((x for x in rep["effects"] if x["name"] == name and x.get("parameters")), None)
+        if e:
+            k = next(iter(vals))
+            fit_err[name] = abs(e["parameters"][k] - vals[k]) / abs(vals[k])
+    o = rep.get("oracle") or {}
+    recov = (o["error_given"] - o["error_told_truth"]) if o else None
+    removed = None
+    acc = [e for e in rep["effects"] if e.get("accepted")]
+    if recov and acc and o.get("error_fitted") is not None:
+        # share of the recoverable error (given − told the truth) that the accepted fits remove
+        removed = (o["error_given"] - o["error_fitted"]) / recov
+    return {"seed": seed, "case": case, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
+            "top": top.get("name"), "top_group": top.get("group"),
+            "top_ev": top.get("explained_fraction"), "second": (rep["effects"][1]["name"] if len(rep["effects"]) > 1 else None),
+            "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
+            "fitted": json.dumps({e["name"]: e["parameters"] for e in acc}),
+            "fit_rel_error": max(fit_err.values()) if fit_err else None,
+            "hidden_found": "+".join(sorted(n for n in hidden if n in rep["accepted"] or
+                                             any(CANDIDATES[n].group == CANDIDATES[a].group for a in rep["accepted"]))),
+            "error_given": o.get("error_given"), "error_told_truth": o.get("error_told_truth"),
+            "error_fitted": o.get("error_fitted"), "recoverable_removed": removed,
+            "worse": "+".join(sorted({m for e in acc for m in e.get("worse_metrics", [])})),
+            "worse_told_truth": "+".join(o.get("worse_told_truth", [])),
+            "worse_fitted_than_truth": "+".join(o.get("worse_fitted_than_truth", [])),
+            "traced": rep["cost"]["traced_simulations"], "seconds": round(dt, 1)}
 
-    df = pd.DataFrame(rows)
-    if a.out:
-        df.to_csv(a.out, index=False)
+
+def summarise(df) -> None:
+    """Print the issue's criteria over the runs in ``df``."""
     ool = df[df.case == "out_of_library"]
     if len(ool):
         print(f"out of library reported as not attributable: "
@@ -150,14 +148,53 @@ def main(argv=None) -> int:
     eff = df[~df.case.isin(["null", "out_of_library"])]
     if len(eff):
         print(f"top-ranked group correct: {(eff.top_group == eff.expected_group).mean():.0%} of {len(eff)} runs")
+        for case, g in eff.groupby("case", sort=False):
+            fe = g.fit_rel_error.dropna()
+            rr = g.recoverable_removed.dropna()
+            print(f"  {case:24s} top group right {(g.top_group == g.expected_group).sum()}/{len(g)}, "
+                  f"fitted within 20 % {(fe <= 0.2).sum()}/{len(g)}, ≥ 50 % recoverable removed "
+                  f"{(rr >= 0.5).sum()}/{len(g)}, worse than told the truth: "
+                  f"{(g.worse_fitted_than_truth.fillna('') != '').sum()}/{len(g)}")
         fe = eff.fit_rel_error.dropna()
-        print(f"fitted within 20 %: {(fe <= 0.2).mean():.0%} of {len(fe)} fits")
+        print(f"fitted within 20 %: {(fe <= 0.2).sum()} of {len(eff)} runs")
         rr = eff.recoverable_removed.dropna()
-        print(f"≥ 50 % of the recoverable held-out error removed: {(rr >= 0.5).mean():.0%} of {len(rr)}")
+        print(f"≥ 50 % of the recoverable held-out error removed: {(rr >= 0.5).sum()} of {len(eff)} runs")
     nl = df[df.case == "null"]
     if len(nl):
-        print(f"null runs with an accepted effect: {(nl.accepted != '').sum()} of {len(nl)}")
-    print(f"per run: {df.seconds.median():.0f} s median, {df.traced.max()} traced simulations at most")
+        print(f"null runs with an accepted effect: {(nl.accepted.fillna('') != '').sum()} of {len(nl)}")
+    print(f"per run: {df.seconds.median():.0f} s median, {df.seconds.max():.0f} s at most, "
+          f"{df.traced.max()} traced simulations at most")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--cases", nargs="+", default=["all"])
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vlsforest-bench-diagnose"))
+    ap.add_argument("--out", type=Path, default=None,
+                    help="JSON-lines file: one row per run, appended as runs finish; runs already in "
+                         "it are skipped (default WORKDIR/runs.jsonl)")
+    ap.add_argument("--summary", action="store_true", help="only print the criteria over --out")
+    a = ap.parse_args(argv)
+    import pandas as pd
+
+    out = a.out or a.workdir / "runs.jsonl"
+    done = [json.loads(x) for x in out.read_text().splitlines() if x.strip()] if out.is_file() else []
+    if not a.summary:
+        cases = list(CASES) if a.cases == ["all"] else a.cases
+        out.parent.mkdir(parents=True, exist_ok=True)
+        have = {(r["seed"], r["case"]) for r in done}
+        for seed in a.seeds:
+            for case in cases:
+                if (seed, case) in have:
+                    continue
+                row = _run_case(seed, case, a.workdir)
+                print(json.dumps(row), flush=True)
+                with out.open("a") as fh:
+                    fh.write(json.dumps(row) + "\n")
+                done.append(row)
+    if done:
+        summarise(pd.DataFrame(done))
     return 0
 
 

@@ -585,7 +585,11 @@ def diagnose(setup: Setup, log=None) -> dict:
         D_fit = study.residual(base)
         oracle = {"values": setup.oracle, "error_given": float(np.nanmean(st.tree_loss(D0, w))),
                   "error_told_truth": float(np.nanmean(st.tree_loss(D_or, w))),
-                  "error_fitted": float(np.nanmean(st.tree_loss(D_fit, w)))}
+                  "error_fitted": float(np.nanmean(st.tree_loss(D_fit, w))),
+                  # observables significantly worse when told the truth (the voxel model's own
+                  # error compensated there), and worse with the fitted values than with the truth
+                  "worse_told_truth": st.worse_metrics(D0, D_or, FEATURES),
+                  "worse_fitted_than_truth": st.worse_metrics(D_or, D_fit, FEATURES)}
     final_D = current_D
     rep = {
         "scenario": setup.scenario,
