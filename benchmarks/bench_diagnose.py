@@ -68,8 +68,9 @@ def _quick_view(seed: int, workdir: Path) -> Path:
     wd = workdir / f"seed{seed}"
     wd.mkdir(parents=True, exist_ok=True)
     if not (wd / "results" / "Q1" / "scaled" / "scene" / "scene.yaml").is_file():
-        proc = snakemake_cli("--cores", 2, "--configfile", QUICK, "--config", f"seed={seed}",
-                             "results/Q1/scaled/scene", "results/Q1/surveys/uls.yaml", cwd=wd, timeout=3600)
+        proc = snakemake_cli("results/Q1/scaled/scene", "results/Q1/surveys/uls.yaml",
+                             "results/Q1/segment", "--cores", 2, "--configfile", QUICK,
+                             "--config", f"seed={seed}", cwd=wd, timeout=3600)
         if proc.returncode != 0:
             raise SystemExit(proc.stderr[-3000:])
     return wd
