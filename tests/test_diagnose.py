@@ -47,6 +47,17 @@ def test_bh_and_holm_match_hand_computation():
     assert h[4] == pytest.approx(0.2)
 
 
+def test_worse_metrics_needs_a_significant_and_relevant_increase():
+    rng = np.random.default_rng(1)
+    D0 = rng.normal(size=(40, 3))
+    D1 = D0.copy()
+    D1[:, 0] = D0[:, 0] + np.sign(D0[:, 0]) * 0.02   # every tree 0.02 worse: significant, irrelevant
+    D1[:, 1] = D0[:, 1] + np.sign(D0[:, 1]) * 0.5    # every tree 0.5 worse (half the spread)
+    D1[:, 2] = D0[:, 2] * 0.8                          # better
+    assert st.worse_metrics(D0, D1, ["tiny", "big", "better"]) == ["big"]
+    assert st.worse_metrics(D0, D1, ["tiny", "big", "better"], margin=0.0) == ["tiny", "big"]
+
+
 def test_grid_minimum_finds_the_vertex_of_a_parabola():
     x = np.linspace(0, 10, 7)
     assert st.grid_minimum(x, (x - 3.7) ** 2 + 1, 0, 10) == pytest.approx(3.7)
@@ -431,6 +442,31 @@ def test_logic_finds_and_fits_a_hidden_effect_beside_reconstruction_error(monkey
     fit = rep["effects"][0]
     assert fit["name"] == name and fit["parameters"][key] == pytest.approx(values[key], rel=0.2)
     assert fit["heldout_error_after"] < fit["heldout_error_before"] and fit["p_value"] < 0.05
+
+
+def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(monkeypatch):
+    from vlsforest.diagnose import core
+
+    hidden = {"range_noise": {"sigma_m": 0.06}}
+    study = _LinearStudy(hidden)
+    monkeypatch.setattr(core, "_Study", lambda setup, log: study)
+    setup = core.Setup(scenario="uls", plots=[], seed=0)
+    setup.oracle = hidden
+    rep = core.diagnose(setup, log=lambda m: None)
+    o = rep["oracle"]
+    # told the truth, only the reconstruction error is left: less than as given, and the fit
+    # (within 20 % of the truth) lands close to it, not worse on any observable than the truth
+    assert o["error_told_truth"] < o["error_given"]
+    assert o["error_fitted"] < o["error_given"]
+    removed = (o["error_given"] - o["error_fitted"]) / (o["error_given"] - o["error_told_truth"])
+    assert removed > 0.8
+    assert o["worse_fitted_than_truth"] == []
+    assert isinstance(o["worse_told_truth"], list)
+    # a deliberately wrong "truth" is seen: the fit is then better than the oracle's value
+    setup.oracle = {"range_noise": {"sigma_m": 0.0}}
+    o2 = core.diagnose(setup, log=lambda m: None)["oracle"]
+    assert o2["error_told_truth"] == pytest.approx(o["error_given"])
+    assert o2["worse_told_truth"] == []
 
 
 def test_logic_null_and_out_of_library_are_not_attributed(monkeypatch):

@@ -197,16 +197,24 @@ def paired_improvement(before: np.ndarray, after: np.ndarray) -> float:
     return float(sst.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
 
 
-def worse_metrics(D0: np.ndarray, D1: np.ndarray, names, alpha: float = 0.05) -> list:
-    """Observables whose absolute residual got significantly larger (paired Wilcoxon, Holm)."""
+def worse_metrics(D0: np.ndarray, D1: np.ndarray, names, alpha: float = 0.05, margin: float = 0.1) -> list:
+    """Observables whose absolute residual got significantly and relevantly larger.
+
+    Significant: paired one-sided Wilcoxon per observable, Holm-corrected. Relevant: the mean
+    increase of the absolute residual exceeds ``margin`` times the residual's spread across trees
+    in ``D0``. Without the margin a change of a few per cent of the tree-to-tree spread, shared by
+    every tree (e.g. a fitted value 1 % off the truth), would count as "worse".
+    """
     p = np.full(D0.shape[1], np.nan)
+    big = np.zeros(D0.shape[1], bool)
     for j in range(D0.shape[1]):
         ok = np.isfinite(D0[:, j]) & np.isfinite(D1[:, j])
         d = np.abs(D1[ok, j]) - np.abs(D0[ok, j])
         if ok.sum() >= 5 and np.any(d != 0):
             p[j] = float(sst.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
+            big[j] = d.mean() > margin * np.std(D0[ok, j])
     q = holm(p)
-    return [names[j] for j in range(len(names)) if np.isfinite(q[j]) and q[j] < alpha]
+    return [names[j] for j in range(len(names)) if np.isfinite(q[j]) and q[j] < alpha and big[j]]
 
 
 def amplitude_test(D: np.ndarray, J: np.ndarray, w: np.ndarray):
