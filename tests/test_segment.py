@@ -151,6 +151,61 @@ def test_segment_synthetic_two_trees():
     np.testing.assert_array_equal(res.tree_id, res2.tree_id)
 
 
+def _stem(rng, sx, sy, r, h0, h1, n):
+    a = rng.uniform(0, 2 * np.pi, n)
+    h = rng.uniform(h0, h1, n)
+    return np.column_stack([sx + r * np.cos(a), sy + r * np.sin(a), _terrain(sx, sy) + h])
+
+
+def test_low_slice_finds_a_stem_whose_breast_height_slice_is_cluttered():
+    rng = np.random.default_rng(5)
+    xyz, lab = _scene(rng, stems=((-3.0, 1.0, 0.15),))
+    # a low-crowned tree at (4, -2): dense foliage from 0.9 m up hides its stem in the 1–2 m slice
+    stem = _stem(rng, 4.0, -2.0, 0.10, 0.0, 8.0, 6000)
+    v = rng.uniform(-1.5, 1.5, size=(60000, 3))
+    v = v[np.hypot(v[:, 0], v[:, 1]) > 0.15]
+    foliage = np.column_stack([4.0 + v[:, 0], -2.0 + v[:, 1], _terrain(4.0, -2.0) + 2.4 + v[:, 2]])
+    cloud = PointCloud(np.vstack([xyz, stem, foliage]))
+    res = segment_cloud(cloud, SegmentConfig())
+    xy = res.trees[["x", "y"]].to_numpy()
+    assert len(xy) == 2 and np.hypot(*(xy[1] - [4.0, -2.0])) < 0.03
+    assert res.trees["dbh"].iloc[1] == pytest.approx(0.20, abs=0.02)
+    # the foliage belongs to that tree, not to its neighbour
+    own = res.tree_id[len(xyz) + len(stem):]
+    assert (own == 2).mean() > 0.95
+    # without the low slice the stem is missed and its crown is left without a tree
+    off = segment_cloud(cloud, SegmentConfig(low_slice_min=0.4, low_slice_max=0.4))
+    assert len(off.trees) == 1 and (off.tree_id[len(xyz):] == 0).mean() > 0.95
+    with pytest.raises(ConfigError, match="segment.low_slice_min"):
+        SegmentConfig(low_slice_min=0.05, low_slice_max=1.0)
+
+
+def test_unreached_crown_pieces_join_whole_and_chain():
+    rng = np.random.default_rng(6)
+    stem = _stem(rng, 0.0, 0.0, 0.15, 0.0, 8.0, 8000)
+    z0 = _terrain(0.0, 0.0)
+    ground = rng.uniform(-10, 10, size=(40000, 2))
+    ground = np.column_stack([ground, _terrain(ground[:, 0], ground[:, 1])])
+    # piece A: 0.8 m above the stem top (beyond graph_radius 0.5, within attach_dist 1.0), 3 m
+    # tall, so that most of it lies farther than attach_dist from any reached point;
+    # piece B: 0.8 m above A; piece C: 4 m to the side of A (beyond attach_dist)
+    def blob(cx, cy, zlo, zhi, n):
+        return np.column_stack([cx + rng.uniform(-0.6, 0.6, n), cy + rng.uniform(-0.6, 0.6, n),
+                                z0 + rng.uniform(zlo, zhi, n)])
+    a = blob(0.0, 0.0, 8.8, 11.8, 20000)
+    b = blob(0.0, 0.0, 12.6, 14.0, 8000)
+    c = blob(5.5, 0.0, 9.0, 10.0, 5000)
+    xyz = np.vstack([ground, stem, a, b, c])
+    res = segment_cloud(PointCloud(xyz), SegmentConfig())
+    lab = res.tree_id[len(ground):]
+    n_s, n_a, n_b = len(stem), len(a), len(b)
+    assert len(res.trees) == 1
+    assert (lab[:n_s] == 1).mean() > 0.98  # the lowest centimetres are ground
+    assert (lab[n_s:n_s + n_a] == 1).all() and (lab[n_s + n_a:n_s + n_a + n_b] == 1).all()
+    assert (lab[n_s + n_a + n_b:] == 0).all()
+    assert res.trees["height"].iloc[0] == pytest.approx(14.0, abs=0.1)
+
+
 def test_deviation_filter_drops_noisy_pulses():
     rng = np.random.default_rng(4)
     xyz, lab = _scene(rng)

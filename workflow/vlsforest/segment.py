@@ -25,8 +25,10 @@ The pipeline (:func:`segment_cloud`) has four steps.
    ``graph_radius`` with weight ``distance ** edge_power``. One multi-source Dijkstra
    (:func:`scipy.sparse.csgraph.dijkstra`, ``min_only=True``) from the voxels of all stem
    slices at once gives every reachable voxel the tree of the nearest seed along the graph.
-   **Unreached voxels** take the tree of the nearest reached voxel when that lies within
-   ``attach_dist``, otherwise tree id 0 (no tree). Every point then takes its voxel's tree.
+   **Unreached voxels** form connected pieces of the graph (crown parts sampled too sparsely
+   to link to a stem); a piece takes, as a whole, the tree of the labelled voxel nearest to any
+   of its voxels when that lies within ``attach_dist`` (repeated, so pieces chain onto pieces
+   attached before), otherwise tree id 0 (no tree). Every point then takes its voxel's tree.
 
 Tree ids are 1..N in the order of stem x, then y (rounded to 1 mm), so that the same input gives
 the same ids. Tree height is the highest point of the tree minus the terrain height at the stem.
@@ -97,6 +99,9 @@ class SegmentConfig:
         fewer is the error "no ground".
     slice_min, slice_max : float
         Height range above the terrain of the stem-seed slice.
+    low_slice_min, low_slice_max : float
+        A second, lower slice searched for stems the first one missed (trees whose crown or
+        branches reach into the first slice); ``low_slice_max <= low_slice_min`` switches it off.
     seed_cluster_dist : float
         Linking distance of the slice points (after thinning to 2 cm) when clustering.
     seed_min_points : int
@@ -131,6 +136,8 @@ class SegmentConfig:
     min_ground_fraction: float = 0.1
     slice_min: float = 1.0
     slice_max: float = 2.0
+    low_slice_min: float = 0.4
+    low_slice_max: float = 1.0
     seed_cluster_dist: float = 0.1
     seed_min_points: int = 12
     min_dbh: float = 0.05
@@ -167,6 +174,10 @@ class SegmentConfig:
         if self.slice_max <= self.slice_min:
             raise ConfigError(
                 f"segment.slice_max: must exceed slice_min ({self.slice_min}), got {self.slice_max}"
+            )
+        if self.low_slice_max > self.low_slice_min and self.low_slice_min <= self.ground_tol:
+            raise ConfigError(
+                f"segment.low_slice_min: must exceed ground_tol ({self.ground_tol}), got {self.low_slice_min}"
             )
         if self.slice_min <= self.ground_tol:
             raise ConfigError(f"segment.slice_min: must exceed ground_tol ({self.ground_tol}), got {self.slice_min}")
@@ -563,14 +574,14 @@ def _centroids(xyz: np.ndarray, inv: np.ndarray, n: int) -> np.ndarray:
     return np.column_stack([np.bincount(inv, weights=xyz[:, k], minlength=n) / cnt for k in range(3)])
 
 
-def _cluster_stems(pts, ph, cfg: SegmentConfig, rng, max_stems: int = 3):
+def _cluster_stems(pts, ph, cfg: SegmentConfig, rng, lo: float, hi: float, max_stems: int = 3):
     """Circles of vertical stems in one slice cluster (sequential RANSAC).
 
     Yields ``(cx, cy, r, near)`` with ``near`` the mask of the cluster points that belong to
     the stem (within ``max(0.05, 0.25 r)`` of its circle).
     """
-    mid = 0.5 * (cfg.slice_min + cfg.slice_max)
-    thick = cfg.slice_max - cfg.slice_min
+    mid = 0.5 * (lo + hi)
+    thick = hi - lo
     left = np.ones(len(pts), bool)
     for _ in range(max_stems):
         idx = np.flatnonzero(left)
@@ -616,6 +627,37 @@ def _cluster_stems(pts, ph, cfg: SegmentConfig, rng, max_stems: int = 3):
         left &= ~near
 
 
+def _slice_candidates(xyz, hag, lo: float, hi: float, cfg: SegmentConfig, rng) -> list:
+    """Stem circles in the height slice ``[lo, hi]``: ``(cx, cy, r, indices, points, heights)``."""
+    in_slice = np.flatnonzero((hag >= lo) & (hag <= hi))
+    if len(in_slice) < cfg.seed_min_points:
+        return []
+    sxyz = xyz[in_slice]
+    uniq, inv = _voxel_keys(sxyz, 0.02, np.zeros(3))
+    cen = _centroids(sxyz, inv, len(uniq))
+    cen[:, 2] *= _SLICE_Z_SCALE  # stems are vertical: link far along z, near across it
+    tree = cKDTree(cen)
+    pairs = tree.query_pairs(cfg.seed_cluster_dist, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cen), len(cen)))
+    ncomp, comp = connected_components(g, directed=False)
+    sizes = np.bincount(comp, minlength=ncomp)
+    point_comp = comp[inv]
+    order = np.argsort(point_comp, kind="stable")
+    starts = np.searchsorted(point_comp[order], np.arange(ncomp + 1))
+    shag = hag[in_slice]
+    thick = hi - lo
+    cands = []
+    for cid in np.flatnonzero(sizes >= cfg.seed_min_points):
+        members = order[starts[cid]:starts[cid + 1]]
+        pts = sxyz[members]
+        ph = shag[members]
+        if np.ptp(ph) < 0.6 * thick:
+            continue
+        for cx, cy, r, near in _cluster_stems(pts, ph, cfg, rng, lo, hi):
+            cands.append((cx, cy, r, in_slice[members[near]], pts[near], ph[near]))
+    return cands
+
+
 def find_stems(xyz: np.ndarray, hag: np.ndarray, dtm: Dtm, config: SegmentConfig | None = None):
     """Stem seeds from a height slice of non-ground points.
 
@@ -639,33 +681,17 @@ def find_stems(xyz: np.ndarray, hag: np.ndarray, dtm: Dtm, config: SegmentConfig
     """
     cfg = config or SegmentConfig()
     rng = np.random.default_rng(cfg.seed)
-    in_slice = np.flatnonzero((hag >= cfg.slice_min) & (hag <= cfg.slice_max))
     empty = pd.DataFrame(columns=["x", "y", "z", "dbh", "radius_fit_rms"])
-    if len(in_slice) < cfg.seed_min_points:
+    cands = _slice_candidates(xyz, hag, cfg.slice_min, cfg.slice_max, cfg, rng)
+    if cfg.low_slice_max > cfg.low_slice_min:
+        # stems the first slice missed (branches or foliage of low crowns clutter it): the
+        # lower slice adds those farther than their radii + 0.3 m from every stem found
+        known = np.array([(c[0], c[1], c[2]) for c in cands]).reshape(-1, 3)
+        for c in _slice_candidates(xyz, hag, cfg.low_slice_min, cfg.low_slice_max, cfg, rng):
+            if len(known) == 0 or np.all(np.hypot(known[:, 0] - c[0], known[:, 1] - c[1]) > known[:, 2] + c[2] + 0.3):
+                cands.append(c)
+    if not cands:
         return empty, []
-    sxyz = xyz[in_slice]
-    uniq, inv = _voxel_keys(sxyz, 0.02, np.zeros(3))
-    cen = _centroids(sxyz, inv, len(uniq))
-    cen[:, 2] *= _SLICE_Z_SCALE  # stems are vertical: link far along z, near across it
-    tree = cKDTree(cen)
-    pairs = tree.query_pairs(cfg.seed_cluster_dist, output_type="ndarray")
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cen), len(cen)))
-    ncomp, comp = connected_components(g, directed=False)
-    sizes = np.bincount(comp, minlength=ncomp)
-    point_comp = comp[inv]
-    order = np.argsort(point_comp, kind="stable")
-    starts = np.searchsorted(point_comp[order], np.arange(ncomp + 1))
-    shag = hag[in_slice]
-    thick = cfg.slice_max - cfg.slice_min
-    cands = []
-    for cid in np.flatnonzero(sizes >= cfg.seed_min_points):
-        members = order[starts[cid]:starts[cid + 1]]
-        pts = sxyz[members]
-        ph = shag[members]
-        if np.ptp(ph) < 0.6 * thick:
-            continue
-        for cx, cy, r, near in _cluster_stems(pts, ph, cfg, rng):
-            cands.append((cx, cy, r, in_slice[members[near]], pts[near], ph[near]))
     # merge seeds of the same stem (split clusters)
     cands.sort(key=lambda c: -len(c[3]))
     merged: list[list] = []
@@ -740,14 +766,34 @@ def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig):
     n_unreached = int((~reached).sum())
     attached = 0
     if n_unreached and reached.any():
-        rt = cKDTree(cen[reached])
-        d, j = rt.query(cen[~reached], k=1, distance_upper_bound=cfg.attach_dist, workers=-1)
-        hit = np.isfinite(d)
-        lab_r = vlab[reached]
-        tmp = np.zeros(n_unreached, np.int64)
-        tmp[hit] = lab_r[j[hit]]
-        vlab[~reached] = tmp
-        attached = int(hit.sum())
+        # unreached parts (crown pieces the scans sampled too sparsely to link) join whole: a
+        # connected piece takes the tree of the reached voxel nearest to any of its voxels when
+        # that lies within attach_dist; repeated, so that pieces can chain onto attached ones
+        un = np.flatnonzero(~reached)
+        sub = graph[un][:, un]
+        ncomp, comp = connected_components(sub, directed=False)
+        todo = np.ones(ncomp, bool)
+        for _ in range(8):
+            have = vlab > 0
+            if not todo.any() or not have.any():
+                break
+            rt = cKDTree(cen[have])
+            q = un[todo[comp]]
+            d, j = rt.query(cen[q], k=1, distance_upper_bound=cfg.attach_dist, workers=-1)
+            hit = np.isfinite(d)
+            if not hit.any():
+                break
+            qc = comp[todo[comp]]
+            best = np.full(ncomp, np.inf)
+            np.minimum.at(best, qc[hit], d[hit])
+            win = hit & (d <= best[qc])
+            lab_c = np.zeros(ncomp, np.int64)
+            lab_c[qc[win]] = vlab[np.flatnonzero(have)[j[win]]]
+            new = todo & (lab_c > 0)
+            sel = new[comp]
+            vlab[un[sel]] = lab_c[comp[sel]]
+            todo &= ~new
+        attached = int((vlab[un] > 0).sum())
     labels = vlab[inv]
     info = {"n_voxels": nv, "n_edges": int(len(w)), "unreached": n_unreached, "attached": attached}
     return labels, info
