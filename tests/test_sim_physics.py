@@ -50,6 +50,45 @@ def test_plane_at_nadir_one_return_exact_range():
     assert np.abs(pt["xyz"][:, 2] - 12.5).max() < 1e-3
 
 
+def test_trajectory_noise_moves_the_points_like_a_gnss_ins_error():
+    """The beam really goes from the perturbed trajectory, the returns are placed from the
+    nominal one: a flat ground then shows the trajectory's z error (position) and
+    range × attitude error, smooth along the strip; traced and georeferenced geometry differ."""
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-200, -200, 200, 200])
+    ov = dict(NADIR, prf_hz=4000)
+    legs = _line(-60, 60, 100.0)
+    d = {"scanner": "riegl_vq780i", "overrides": ov, "platform": {"speed_mps": 10.0, "legs": legs}, "seed": 3,
+         "trajectory_noise": {"position_sigma_m": 0.1, "attitude_sigma_deg": 0.0, "correlation_s": 1.0}}
+    res = simulate(sc, survey_from_dict(d), workers=1)
+    z = res.points["xyz"][:, 2]
+    assert 0.05 < z.std() < 0.2 and abs(z).max() > 0.1          # the trajectory's z error
+    t = res.points["gps_time"]
+    o = np.argsort(t)
+    # smooth: neighbouring pulses (0.25 ms apart, correlation 1 s) share their error
+    assert np.abs(np.diff(z[o])).max() < 0.01
+    # the recorded pulse origins are the nominal trajectory (x = 0, z = 100 m exactly)
+    assert np.abs(res.pulses["origin"][:, 2] - 100.0).max() < 1e-9
+    # attitude error: the beam hits beside the nominal spot (range × angle, ≈ 8.7 cm), the point
+    # is placed along the nominal beam: on a ground sloping 0.5 in x it lies off the surface by
+    # ≈ 0.5 × that; on flat ground it would not show
+    slope = Scene()
+    v = np.array([[-200, -200, -100], [200, -200, 100], [200, 200, 100], [-200, 200, -100]], float)
+    slope.add_mesh(1, v, [[0, 1, 2], [0, 2, 3]])
+    d["trajectory_noise"] = {"position_sigma_m": 0.0, "attitude_sigma_deg": 0.05, "correlation_s": 1.0}
+    xyz = simulate(slope, survey_from_dict(d), workers=1).points["xyz"]
+    off = xyz[:, 2] - 0.5 * xyz[:, 0]
+    expect = 0.5 * 100.0 * np.radians(0.05)
+    assert 0.4 * expect < off.std() < 2.0 * expect
+    d.pop("trajectory_noise")
+    xyz = simulate(slope, survey_from_dict(d), workers=1).points["xyz"]
+    off0 = xyz[:, 2] - 0.5 * xyz[:, 0]  # constant (the peak of a sloped footprint), no scatter
+    assert off0.std() < 1e-3
+    # without noise, everything lies on the plane and under the line
+    res = simulate(sc, survey_from_dict(d), workers=1)
+    assert np.abs(res.points["xyz"][:, 2]).max() < 1e-4 and np.abs(res.points["xyz"][:, 0]).max() < 0.04
+
+
 def _step_scene(delta):
     sc = Scene()
     sc.add_plane(1, 0.0, [-20, -20, 0.0, 20])          # upper plane, x < 0

@@ -248,7 +248,7 @@ def _trace_fused(job: _Job, batch, rng):
         t, part, cos_inc, np.arange(nl, dtype=np.int64), job.pattern.n, nl, job.range_min, job.pattern.frac,
         job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
     label = traced[3][ray] if job.labels else None
-    return _assemble(job, batch, p, ranges, amp, part[ray], label, num, nof, rng), n_ret
+    return _assemble(job, batch.georeferenced(), p, ranges, amp, part[ray], label, num, nof, rng), n_ret
 
 
 def _trace_and_detect(job: _Job, batch, rng):
@@ -263,10 +263,12 @@ def _trace_and_detect(job: _Job, batch, rng):
         points, n_live = _trace_fused(job, batch.subset(live), rng)
         n_ret = np.zeros(m, np.int16)
         n_ret[live] = n_live
-        return points, _pulse_table(job, batch, n_ret), None, nl * ns
+        return points, _pulse_table(job, batch.georeferenced(), n_ret), None, nl * ns
     hits, ptr = _block_hits(job, batch, live)
-    points, n_ret = _detect(job, batch, ptr, hits, rng)
-    return points, _pulse_table(job, batch, n_ret), (hits if job.keep_hits else None), nl * ns
+    # traced along the true beams; returns placed along the recorded (nominal) ones
+    geo = batch.georeferenced()
+    points, n_ret = _detect(job, geo, ptr, hits, rng)
+    return points, _pulse_table(job, geo, n_ret), (hits if job.keep_hits else None), nl * ns
 
 
 def _pulse_geometry(batch, rows=slice(None)) -> dict:
@@ -326,7 +328,7 @@ def _hit_pulses_block(job: _Job, batch):
     counts = np.diff(ptr)
     keep = np.flatnonzero(counts > 0)
     hits["pulse"] = np.repeat(np.arange(len(keep), dtype=np.int32), counts[keep])
-    return None, _pulse_geometry(batch, keep), hits, len(live) * job.pattern.n
+    return None, _pulse_geometry(batch.georeferenced(), keep), hits, len(live) * job.pattern.n
 
 
 @numba.njit(cache=True)

@@ -46,7 +46,10 @@ deterministic function of GPS time, ``σ·sqrt(2/K)·Σ_j cos(ω_j t + φ_j)`` w
 sample with autocorrelation ``exp(−Δt²/(2τ²))`` (τ = ``correlation_s``) whose time-averaged
 variance over a long survey is exactly σ². It is evaluated on a node grid of spacing τ/16 and
 interpolated linearly (error ~1e-3 σ), which keeps the cost independent of the pulse count.
-It shifts the pulse origin and rotates the beam (``H(h+δyaw)·P(δpitch)·R(δroll)``); a static
+It shifts the pulse origin and rotates the beam (``H(h+δyaw)·P(δpitch)·R(δroll)``) for the
+ray tracing, while the returns are georeferenced from the nominal trajectory
+(:meth:`PulseBatch.georeferenced`), as a system with a GNSS/INS error records them: the points
+of a strip move together, by the position error plus range times the attitude error. A static
 scan takes the noise at its start time for the whole scan (a registration error). Without the
 ``trajectory_noise`` key, or with σ = 0, it is exactly zero.
 
@@ -109,6 +112,10 @@ class PulseBatch:
         Signed across-track deflection from nadir (tls: elevation in the head frame).
     source_id : ndarray of uint16
         Flight line / scan position number, from 1.
+    geo_origin, geo_direction, geo_scan_dir : ndarray, shape (m, 3), or None
+        With trajectory noise: the geometry the system *believes* (the nominal trajectory), from
+        which the returns are georeferenced, while ``origin``/``direction`` are where the beam
+        really went. None without trajectory noise (both are the same).
     """
 
     slot: np.ndarray
@@ -118,13 +125,29 @@ class PulseBatch:
     scan_dir: np.ndarray
     scan_angle_deg: np.ndarray
     source_id: np.ndarray
+    geo_origin: np.ndarray | None = None
+    geo_direction: np.ndarray | None = None
+    geo_scan_dir: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.slot)
 
+    def _fields(self):
+        return _BATCH_FIELDS + (_GEO_FIELDS if self.geo_origin is not None else ())
+
     def subset(self, index) -> "PulseBatch":
         """Return the pulses selected by a boolean mask, an index array or a slice."""
-        return PulseBatch(**{k: getattr(self, k)[index] for k in _BATCH_FIELDS})
+        return PulseBatch(**{k: getattr(self, k)[index] for k in self._fields()})
+
+    def georeferenced(self) -> "PulseBatch":
+        """The batch as the system records it: origin and directions of the nominal trajectory
+        (``self`` without trajectory noise). Returns are placed along these, so a trajectory
+        error moves the points the way a GNSS/INS error does."""
+        if self.geo_origin is None:
+            return self
+        return PulseBatch(slot=self.slot, gps_time=self.gps_time, origin=self.geo_origin,
+                          direction=self.geo_direction, scan_dir=self.geo_scan_dir,
+                          scan_angle_deg=self.scan_angle_deg, source_id=self.source_id)
 
     @staticmethod
     def empty() -> "PulseBatch":
@@ -145,10 +168,17 @@ class PulseBatch:
         batches = list(batches)
         if not batches:
             return PulseBatch.empty()
-        return PulseBatch(**{k: np.concatenate([getattr(b, k) for b in batches]) for k in _BATCH_FIELDS})
+        fields = _BATCH_FIELDS
+        if any(b.geo_origin is not None for b in batches):
+            batches = [b if b.geo_origin is not None else
+                       PulseBatch(**{k: getattr(b, k) for k in _BATCH_FIELDS}, geo_origin=b.origin,
+                                  geo_direction=b.direction, geo_scan_dir=b.scan_dir) for b in batches]
+            fields = _BATCH_FIELDS + _GEO_FIELDS
+        return PulseBatch(**{k: np.concatenate([getattr(b, k) for b in batches]) for k in fields})
 
 
 _BATCH_FIELDS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle_deg", "source_id")
+_GEO_FIELDS = ("geo_origin", "geo_direction", "geo_scan_dir")
 
 
 @dataclass(frozen=True, eq=False)
@@ -373,7 +403,11 @@ class Survey:
         dt = k / self.scanner.prf_hz
         t = self._t0[seg] + dt
         origin = self._p0[seg] + dt[:, None] * self._vel[seg]
+        geo = {}
         if self._noise is not None:
+            nominal_rot = [[e[seg] for e in row] for row in self._rot]
+            geo = dict(geo_origin=origin, geo_direction=_apply(nominal_rot, d_body),
+                       geo_scan_dir=_apply(nominal_rot, s_body))
             heading = self._heading[seg]
             pitch = self._tilt[seg]
             roll = np.zeros(len(seg))
@@ -397,6 +431,7 @@ class Survey:
             scan_dir=scan_dir,
             scan_angle_deg=np.asarray(angle, dtype=np.float64),
             source_id=self._src[seg],
+            **geo,
         )
 
     def pulses_toward(self, start: int, stop: int, lo, hi, tan_off: float):
