@@ -13,8 +13,10 @@ then the pass rates of the issue's criteria. Writes ``--out`` (CSV).
     python benchmarks/bench_diagnose.py --seeds 0 1 2 --cases all --workdir /tmp/diag
     python benchmarks/bench_diagnose.py --seeds 0 1 2 3 4 5 6 7 8 9 --cases null   # 10 null runs
 
-One case on 2 cores: ≈ 6 min and ≤ 30 traced simulations (README "Performance"); the whole
-campaign (3 seeds × 6 cases + 10 null runs) takes several hours.
+One case on 2 cores: 46–435 s and 4–20 traced simulations (session 7), plus ≈ 4 min per forest
+seed for the quick workflow and ≈ 1 min per case to record; the campaign (3 seeds × 6 cases,
+two effects, out of library, 10 null runs) ≈ 2 h. ``--summary`` prints the criteria over an
+existing ``--out`` file.
 """
 
 from __future__ import annotations
