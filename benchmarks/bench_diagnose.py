@@ -91,7 +91,7 @@ def _record(seed: int, case: str, workdir: Path) -> Path:
     return out
 
 
-def _run_case(seed: int, case: str, workdir: Path) -> dict:
+def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal") -> dict:
     """Diagnose one case blind; return its row (criteria measured against the hidden values)."""
     from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
 
@@ -107,10 +107,11 @@ def _run_case(seed: int, case: str, workdir: Path) -> dict:
         setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
         setup.candidates_given = True
     setup.oracle = CASES[case][1] or None
+    setup.metric = metric
     t0 = time.perf_counter()
     rep = diagnose(setup, log=lambda m: None)
     dt = time.perf_counter() - t0
-    (workdir / f"seed{seed}" / case / "diagnosis.json").write_text(json.dumps(rep, indent=1))
+    (workdir / f"seed{seed}" / case / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}.json").write_text(json.dumps(rep, indent=1))
     top = rep["effects"][0] if rep["effects"] else {}
     hidden = CASES[case][1]
     fit_err = {}
@@ -126,7 +127,7 @@ def _run_case(seed: int, case: str, workdir: Path) -> dict:
     if recov and acc and o.get("error_fitted") is not None:
         # share of the recoverable error (given − told the truth) that the accepted fits remove
         removed = (o["error_given"] - o["error_fitted"]) / recov
-    return {"seed": seed, "case": case, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
+    return {"seed": seed, "case": case, "metric": metric, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
             "top": top.get("name"), "top_group": top.get("group"),
             "top_ev": top.get("explained_fraction"), "second": (rep["effects"][1]["name"] if len(rep["effects"]) > 1 else None),
             "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
@@ -178,6 +179,8 @@ def main(argv=None) -> int:
                     help="JSON-lines file: one row per run, appended as runs finish; runs already in "
                          "it are skipped (default WORKDIR/runs.jsonl)")
     ap.add_argument("--summary", action="store_true", help="only print the criteria over --out")
+    ap.add_argument("--metric", choices=("diagonal", "whitened"), default="diagonal",
+                    help="the diagnosis' attribution metric (runs are kept apart by metric)")
     a = ap.parse_args(argv)
     import pandas as pd
 
@@ -186,16 +189,17 @@ def main(argv=None) -> int:
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
-        have = {(r["seed"], r["case"]) for r in done}
+        have = {(r["seed"], r["case"], r.get("metric", "diagonal")) for r in done}
         for seed in a.seeds:
             for case in cases:
-                if (seed, case) in have:
+                if (seed, case, a.metric) in have:
                     continue
-                row = _run_case(seed, case, a.workdir)
+                row = _run_case(seed, case, a.workdir, a.metric)
                 print(json.dumps(row), flush=True)
                 with out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
+    done = [r for r in done if r.get("metric", "diagonal") == a.metric]
     if done:
         summarise(pd.DataFrame(done))
     return 0

@@ -374,6 +374,7 @@ def diagnosis_param(wildcards):
         "folds": d.get("folds", 3),
         "grid": d.get("grid", 7),
         "candidates": d.get("candidates") or None,
+        **({"metric": d["metric"]} if "metric" in d else {}),
         "plots": {
             plot: {
                 "real": _plot_path(plot, "recording", recording_of(wildcards.scenario)),

@@ -83,6 +83,9 @@ class Setup:
     max_effects: int = 2
     #: whether ``candidates`` was given (else: the whole library, less what the scenes cannot model)
     candidates_given: bool = False
+    #: explained fraction in the ``diagonal`` metric (1 / across-tree variance per observable) or
+    #: the ``whitened`` one (shrunk across-tree correlation; experimental, see the README)
+    metric: str = "diagonal"
     #: benchmarks only: the hidden truth as candidate values; the report then also gives the
     #: error of a simulation told these values (the "recoverable" error's reference)
     oracle: dict | None = None
@@ -98,6 +101,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         seed: 0
         folds: 3                      # k-fold across trees
         candidates: [range_noise, …]  # default: the whole library
+        metric: diagonal              # or whitened: explained fractions in the metric of the
+                                      # residuals' shrunk across-tree correlation (experimental)
         plots:
           Q1:
             real: …/Q1/uls.laz        # default: <--real DIR>/<plot>/<recording>.laz
@@ -120,7 +125,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
             raise ConfigError(f"{path}: invalid YAML: {exc}") from None
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
-    known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects"}
+    known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects",
+             "metric"}
     for k in d:
         if k not in known:
             raise ConfigError(f"{path}: unknown key {k!r} (known: {', '.join(sorted(known))})")
@@ -153,8 +159,12 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     folds = d.get("folds", 3)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ConfigError(f"{path}: folds must be an integer ≥ 2, got {folds!r}")
+    metric = d.get("metric", "diagonal")
+    if metric not in ("diagonal", "whitened"):
+        raise ConfigError(f"{path}: metric must be diagonal or whitened, got {metric!r}")
     return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), int(d.get("workers", 2)),
-                 int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")))
+                 int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")),
+                 metric=metric)
 
 
 # ------------------------------------------------------------------------------------ simulation
@@ -367,9 +377,16 @@ def _grid(par: lib.Param, lo: float, hi: float, base: float, n: int) -> np.ndarr
 
 
 # ------------------------------------------------------------------------------------ the steps
-def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray):
+def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray, metric: str = "diagonal"):
     """Signatures, projections, scores and groups of every candidate (relative to ``base``)."""
     rbar = np.nanmean(D0, axis=0)
+    if metric == "whitened":
+        sd, R, _ = st.shrunk_correlation(D0)
+
+        def project(r, J, ww):
+            return st.project_whitened(r, J, ww, sd, R)
+    else:
+        project = st.project
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
     rows, sigs = [], {}
     for c in cands:
@@ -380,7 +397,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
         S1 = study.sim(_merge(base, c.name, pert)).reindex(study.real.index).to_numpy(float)
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J
-        a, ev, cos = st.project(rbar, J, w)
+        a, ev, cos = project(rbar, J, w)
         step = pert[p0.name] - cur[p0.name]
         implied = cur[p0.name] + a * step
         possible = bool(implied >= lo - 1e-9)  # below the lower bound: a physically impossible sign
@@ -511,7 +528,7 @@ def diagnose(setup: Setup, log=None) -> dict:
     current_D = D0
     remaining = list(cands)
     for stage in range(setup.max_effects if significant else 0):
-        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w)
+        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w, setup.metric)
         ranked, tie = _tie_break(ranked, sigs, cosm, current_D, w)
         rounds.append({"stage": stage + 1, "ranking": [{k: (round(v, 4) if isinstance(v, float) else v)
                                                          for k, v in r.items()} for r in ranked],
@@ -593,6 +610,7 @@ def diagnose(setup: Setup, log=None) -> dict:
     final_D = current_D
     rep = {
         "scenario": setup.scenario,
+        "metric": setup.metric,
         "plots": [p.name for p in setup.plots],
         "n_trees": n_trees,
         "significant_mismatch": significant,
