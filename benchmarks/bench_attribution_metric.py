@@ -1,6 +1,7 @@
 """Benchmark: the attribution's explained fraction in the diagonal vs a covariance-whitened metric.
 
-Offline re-ranking of the diagnosis campaign's cases (``bench_diagnose.py`` work folder): for one
+Offline re-ranking of the diagnosis campaign's cases (the diagnosis has the whitened metric as
+the option ``metric: whitened``; this compares both on stored recordings without a full run) (``bench_diagnose.py`` work folder): for one
 forest seed the candidates' signatures are simulated once on that seed's quick view, then each
 case's "real" recording gives a residual, and every candidate's explained fraction is computed
 
@@ -30,32 +31,6 @@ from pathlib import Path
 import numpy as np
 
 
-def shrunk_correlation(D: np.ndarray):
-    """Standard deviations and the Ledoit–Wolf shrunk correlation of the per-tree residuals."""
-    X = np.where(np.isfinite(D), D, np.nan)
-    mu = np.nanmean(X, 0)
-    sd = np.nanstd(X, 0, ddof=1)
-    Z = np.where(np.isfinite(X) & (sd > 0), (X - mu) / np.where(sd > 0, sd, 1.0), 0.0)
-    n, p = Z.shape
-    S = Z.T @ Z / n
-    m = np.trace(S) / p
-    d2 = np.sum((S - m * np.eye(p)) ** 2) / p
-    b2 = sum(np.sum((np.outer(z, z) - S) ** 2) for z in Z) / n**2 / p
-    lam = min(b2, d2) / d2 if d2 > 0 else 1.0
-    return sd, (1 - lam) * S + lam * m * np.eye(p), lam
-
-
-def whitened_ev(r, J, sd, R, ok):
-    """(explained fraction, amplitude) of signature ``J`` in the mean residual ``r``."""
-    o = ok & np.isfinite(J) & (sd > 0)
-    P = np.linalg.inv(R[np.ix_(o, o)])
-    rr, jj = r[o] / sd[o], J[o] / sd[o]
-    num, jpj, rpr = jj @ P @ rr, jj @ P @ jj, rr @ P @ rr
-    if jpj <= 0 or rpr <= 0:
-        return 0.0, 0.0
-    return float(num * num / (jpj * rpr)), float(num / jpj)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/vlsforest-bench-diagnose"))
@@ -79,12 +54,11 @@ def main(argv=None) -> int:
             D0 = (real - S0.reindex(real.index)).to_numpy(float)
         w = st.weights(D0)
         rbar = np.nanmean(D0, 0)
-        ok = np.isfinite(rbar) & (w > 0)
-        sd, R, lam = shrunk_correlation(D0)
+        sd, R, lam = st.shrunk_correlation(D0)
         rows = []
         for name, J in sigs.items():
             ev = st.project(rbar, J, w)[1]
-            evw, aw = whitened_ev(rbar, J, sd, R, ok)
+            aw, evw, _ = st.project_whitened(rbar, J, w, sd, R)
             rows.append((name, round(max(ev, 0.0), 3), round(evw, 3), round(aw, 2)))
         rows.sort(key=lambda x: -x[2])
         print(json.dumps({"seed": a.seed, "case": rc, "shrinkage": round(lam, 2),
