@@ -1,8 +1,8 @@
 """Benchmark: the attribution's explained fraction in the diagonal vs a covariance-whitened metric.
 
-Offline re-ranking of the diagnosis campaign's cases (the diagnosis has the whitened metric as
-the option ``metric: whitened``; this compares both on stored recordings without a full run) (``bench_diagnose.py`` work folder): for one
-forest seed the candidates' signatures are simulated once on that seed's quick view, then each
+Offline re-ranking of the diagnosis campaign's cases (``bench_diagnose.py`` work folder; the
+diagnosis itself has the whitened metric as the option ``metric: whitened``, this compares both
+metrics on stored recordings without full runs): for one forest seed the candidates' signatures are simulated once on that seed's quick view, then each
 case's "real" recording gives a residual, and every candidate's explained fraction is computed
 
 * as the diagnosis does (weights 1 / across-tree variance per observable: a diagonal metric), and
@@ -54,6 +54,7 @@ def main(argv=None) -> int:
             D0 = (real - S0.reindex(real.index)).to_numpy(float)
         w = st.weights(D0)
         rbar = np.nanmean(D0, 0)
+        ok = np.isfinite(rbar) & (w > 0)  # the observables both metrics use (chance level's m)
         sd, R, lam = st.shrunk_correlation(D0)
         rows = []
         for name, J in sigs.items():

@@ -778,12 +778,12 @@ def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig):
             if not todo.any() or not have.any():
                 break
             rt = cKDTree(cen[have])
-            q = un[todo[comp]]
-            d, j = rt.query(cen[q], k=1, distance_upper_bound=cfg.attach_dist, workers=-1)
+            open_ = todo[comp]
+            d, j = rt.query(cen[un[open_]], k=1, distance_upper_bound=cfg.attach_dist, workers=-1)
             hit = np.isfinite(d)
             if not hit.any():
                 break
-            qc = comp[todo[comp]]
+            qc = comp[open_]
             best = np.full(ncomp, np.inf)
             np.minimum.at(best, qc[hit], d[hit])
             win = hit & (d <= best[qc])

@@ -403,11 +403,11 @@ class Survey:
         dt = k / self.scanner.prf_hz
         t = self._t0[seg] + dt
         origin = self._p0[seg] + dt[:, None] * self._vel[seg]
+        rot = [[e[seg] for e in row] for row in self._rot]  # the nominal attitude
         geo = {}
         if self._noise is not None:
-            nominal_rot = [[e[seg] for e in row] for row in self._rot]
-            geo = dict(geo_origin=origin, geo_direction=_apply(nominal_rot, d_body),
-                       geo_scan_dir=_apply(nominal_rot, s_body))
+            # traced along the perturbed geometry, georeferenced from the nominal one
+            geo = dict(geo_origin=origin, geo_direction=_apply(rot, d_body), geo_scan_dir=_apply(rot, s_body))
             heading = self._heading[seg]
             pitch = self._tilt[seg]
             roll = np.zeros(len(seg))
@@ -417,9 +417,6 @@ class Survey:
             roll = roll + np.radians(nz[:, 3])
             pitch = pitch + np.radians(nz[:, 4])
             heading = heading + np.radians(nz[:, 5])
-        if self._noise is None:
-            rot = [[e[seg] for e in row] for row in self._rot]
-        else:
             rot = _body_to_world(heading, pitch, roll)
         direction = _apply(rot, d_body)
         scan_dir = _apply(rot, s_body)
