@@ -186,6 +186,8 @@ def main(argv=None) -> int:
 
     out = a.out or a.workdir / "runs.jsonl"
     done = [json.loads(x) for x in out.read_text().splitlines() if x.strip()] if out.is_file() else []
+    # rows marked "superseded" (kept for the record, e.g. runs before a physics fix) do not count
+    done = [r for r in done if not r.get("superseded")]
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
