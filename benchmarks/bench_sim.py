@@ -144,7 +144,7 @@ def _bare_embree(scene):
 
     from vlsforest.sim.scene import _cube_triangles
 
-    if any(not scene._in_embree(v) for v in scene._voxelsets):
+    if not all(scene._routing()):
         return None, None  # the big voxel sets are traced by the grid: no triangle equivalent
     lo, hi = scene.bounds()
     shift = 0.5 * (lo + hi)
