@@ -219,7 +219,7 @@ def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
             if _run_block(b)[3] > 0:
                 break
         for grid in getattr(job.scene, "grids", ()):
-            lo, hi = grid.bounds()
+            lo, hi = grid.bounds
             grid.trace(np.array([0.5 * (lo + hi) + [0.0, 0.0, hi[2] - lo[2] + 1.0]]), np.array([[0.0, 0.0, -1.0]]))
     finally:
         _voxelgrid.SERIAL = prev
