@@ -2,8 +2,9 @@
 
 Offline re-ranking of the diagnosis campaign's cases (``bench_diagnose.py`` work folder; the
 diagnosis itself has the whitened metric as the option ``metric: whitened``, this compares both
-metrics on stored recordings without full runs): for one forest seed the candidates' signatures are simulated once on that seed's quick view, then each
-case's "real" recording gives a residual, and every candidate's explained fraction is computed
+metrics on stored recordings without full runs): for one forest seed the candidates'
+signatures are simulated once on that seed's quick view, then each case's "real" recording
+gives a residual, and every candidate's explained fraction is computed
 
 * as the diagnosis does (weights 1 / across-tree variance per observable: a diagonal metric), and
 * in the metric of the across-tree residual covariance (observables standardised, correlation
