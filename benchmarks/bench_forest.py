@@ -2,8 +2,9 @@
 
 Lays out the default forest (:data:`vlsforest.synth.DEFAULT_FOREST`), then generates every tree
 of the largest plot, P5 (0.48 ha plus a 10 m margin, 5 target beeches at 150 000 triangles and
-the surrounding trees at 40 000), and builds its truth table.  Prints tree and triangle counts,
-mesh memory, times and the peak RSS of the process.
+the surrounding trees at 40 000), and builds its truth table.  Prints per plot the stand
+density and the crown cover (sum of crown projection areas over the laid-out area), then tree
+and triangle counts, mesh memory, times and the peak RSS of the process.
 
 Usage: ``python benchmarks/bench_forest.py [--seed N] [--plot P5]``
 """
@@ -37,8 +38,14 @@ def main(argv=None) -> int:
     print(f"layout of {len(plots)} plots:         {t_layout:8.2f} s  (incl. imports on first use)")
     for p in plots:
         n_t = len(p.target_ids())
+        # crown cover: the trees' crown projection areas over the laid-out area (plot + margin);
+        # above 1 the crowns must interpenetrate
+        x0, y0, x1, y1 = p.extent
+        area = (x1 - x0 + 2 * p.margin) * (y1 - y0 + 2 * p.margin)
+        cover = sum(np.pi * t.params.crown_radius ** 2 for t in p.trees) / area
         print(f"   {p.name}: {p.area_ha():.3f} ha, {n_t} targets, "
-              f"{len(p.trees) - n_t} surrounding, ground plane {p.ground_z():.2f} m")
+              f"{len(p.trees) - n_t} surrounding ({len(p.trees) / area * 1e4:.0f} trees/ha), "
+              f"crown projection areas {cover:.2f} × the area, ground plane {p.ground_z():.2f} m")
     plot = {p.name: p for p in plots}[args.plot]
     rss0 = _peak_rss_mib()
     t0 = time.perf_counter()
