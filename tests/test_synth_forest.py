@@ -145,9 +145,9 @@ def test_target_crowns_spread_as_far_as_the_area_allows(forest):
         assert d.min() <= math.hypot(a, b) + 1e-9
 
 
-def test_stand_density_of_surrounding_trees(forest):
-    dens = DEFAULT_FOREST["stand_density_per_ha"]
-    band_n, band_area = 0, 0.0
+def test_canopy_cover_of_surrounding_trees(forest):
+    cover = DEFAULT_FOREST["canopy_cover"]
+    band_n, band_area, n_all, area_all = 0, 0.0, 0, 0.0
     for p in forest:
         s = [t for t in p.trees if not t.target]
         xy = _xy(s)
@@ -155,21 +155,30 @@ def test_stand_density_of_surrounding_trees(forest):
         assert p.margin == DEFAULT_FOREST["margin_m"]
         assert (xy[:, 0] >= rx0).all() and (xy[:, 0] <= rx1).all()
         assert (xy[:, 1] >= ry0).all() and (xy[:, 1] <= ry1).all()
-        area_ha = (rx1 - rx0) * (ry1 - ry0) / 1e4
-        assert abs(len(s) / area_ha / dens - 1) < 0.10, p.name
+        area = (rx1 - rx0) * (ry1 - ry0)
+        # trees are drawn until the nominal crown areas of all trees reach cover × area: the
+        # last tree crosses the line
+        cpa = np.array([t.params.cpa for t in p.trees])
+        assert cpa.sum() >= cover * area > cpa.sum() - cpa[len(p.target_ids()):].max()
+        n_all += len(s)
+        area_all += area
         # the band between the extent and the region is stocked too (the edge is no clearing)
         x0, y0, x1, y1 = p.extent
         inside = (xy[:, 0] > x0) & (xy[:, 0] < x1) & (xy[:, 1] > y0) & (xy[:, 1] < y1)
         band_n += int((~inside).sum())
-        band_area += area_ha - p.area_ha()
+        band_area += area / 1e4 - p.area_ha()
         # and so is the interior away from the targets: each quadrant of the extent has trees
         cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+        dens = len(s) / (area / 1e4)
         for sx in (-1, 1):
             for sy in (-1, 1):
                 q = inside & (sx * (xy[:, 0] - cx) > 0) & (sy * (xy[:, 1] - cy) > 0)
                 assert q.sum() >= 0.5 * dens * p.area_ha() / 4 * 0.5, (p.name, sx, sy)
-    assert abs(band_n / band_area / dens - 1) < 0.2
-    # species mix of all surrounding trees follows the weights (multinomial, n ≈ 1000)
+    # ≈ 49 m² mean crown → a mature stand of ≈ 200–260 stems/ha (targets' large crowns included)
+    dens = n_all / (area_all / 1e4)
+    assert 180 <= dens <= 280, dens
+    assert abs(band_n / band_area / dens - 1) < 0.25
+    # species mix of all surrounding trees follows the weights (multinomial, n ≈ 800)
     s = [t for p in forest for t in p.trees if not t.target]
     w = DEFAULT_FOREST["surrounding_species"]
     tot = sum(w.values())
@@ -177,6 +186,47 @@ def test_stand_density_of_surrounding_trees(forest):
         frac = sum(t.species == sp for t in s) / len(s)
         p0 = wi / tot
         assert abs(frac - p0) < 4 * math.sqrt(p0 * (1 - p0) / len(s)) + 1e-9, sp
+
+
+def test_stand_density_instead_of_cover():
+    cfg = copy.deepcopy(QUICK_FOREST)
+    cfg["stand_density_per_ha"] = 150.0
+    (p,) = forest_from_config(cfg, 3)
+    rx0, ry0, rx1, ry1 = p.region()
+    n_s = len(p.trees) - len(p.target_ids())
+    assert n_s == round(150.0 * (rx1 - rx0) * (ry1 - ry0) / 1e4)
+
+
+def test_crowns_are_plastic_not_interpenetrating(forest):
+    """Every crown knows its competitors; cut crowns keep their area where there is room."""
+    from vlsforest.synth.trees import CROWN_OVERLAP, split_distance
+
+    for p in forest:
+        by = {(round(t.x, 9), round(t.y, 9)): t for t in p.trees}
+        scales = np.array([t.params.crown_scale for t in p.trees])
+        assert (scales >= 1.0).all() and (scales <= 1.5 + 1e-9).all()
+        for t in p.trees:
+            r = t.params.crown_radius * t.params.crown_scale
+            for nb in t.params.neighbours:
+                other = by[(round(t.x + nb.dx, 9), round(t.y + nb.dy, 9))]
+                # the neighbour record describes that tree, heights relative to this stem base
+                assert nb.height == pytest.approx(other.params.height + other.z_ground
+                                                  - t.z_ground)
+                assert nb.radius == pytest.approx(other.params.crown_radius
+                                                  * other.params.crown_scale)
+                d = math.hypot(nb.dx, nb.dy)
+                # at the widest levels the two sides of a boundary sum to 1.1 × the distance
+                b1 = split_distance(r, nb.radius, d, CROWN_OVERLAP)
+                b2 = split_distance(nb.radius, r, d, CROWN_OVERLAP)
+                assert b1 + b2 == pytest.approx(CROWN_OVERLAP * d)
+            # symmetric: a neighbour of mine has me as its neighbour
+            for nb in t.params.neighbours:
+                other = by[(round(t.x + nb.dx, 9), round(t.y + nb.dy, 9))]
+                assert any(abs(o.dx + nb.dx) < 1e-9 and abs(o.dy + nb.dy) < 1e-9
+                           for o in other.params.neighbours)
+    # the targets of the crowded plot (P6: five spruces in a 3.6 m box) grow into the free side
+    p6 = next(p for p in forest if p.name == "P6")
+    assert max(t.params.crown_scale for t in p6.trees if t.target) > 1.1
 
 
 def test_no_two_stems_too_close(forest):
@@ -230,10 +280,9 @@ def test_quick_forest_has_one_small_plot_with_four_targets(quick):
     for t in tg:
         lo, hi, _ = TABLE1[GROUP[t.species]]["height"]
         assert lo <= t.params.height <= hi
-    n_s = len(quick.trees) - 4
     rx0, ry0, rx1, ry1 = quick.region()
-    assert abs(n_s / ((rx1 - rx0) * (ry1 - ry0) / 1e4) / QUICK_FOREST["stand_density_per_ha"]
-               - 1) < 0.1
+    cpa = sum(t.params.cpa for t in quick.trees)
+    assert cpa >= QUICK_FOREST["canopy_cover"] * (rx1 - rx0) * (ry1 - ry0)
 
 
 def test_explicit_target_trees():
@@ -306,6 +355,9 @@ BAD = [
     (_set(("plots", "P3", "grund_elevation_m"), 1.0), "forest.plots.P3.grund_elevation_m"),
     (_set(("stand_density",), 400), "forest.stand_density"),
     (_set(("stand_density_per_ha",), -5), "forest.stand_density_per_ha"),
+    (_set(("canopy_cover",), -0.5), "forest.canopy_cover"),
+    (_set(("canopy_cover",), "full"), "forest.canopy_cover"),
+    (_set(("canopy_cover",), None), "forest.canopy_cover"),
     (_set(("surrounding_species",), {"ulmus_minor": 1.0}), "forest.surrounding_species.ulmus"),
     (_set(("surrounding_species",), {"picea_abies": -1.0}),
      "forest.surrounding_species.picea_abies"),

@@ -24,12 +24,18 @@ Layout (:func:`forest_from_config`, everything drawn from one seed):
    kept, so crowns overlap as little as the area allows.  The extent is then computed from the
    stems, so it is exactly the smallest rectangle around the buffers and its area is ``A`` (up
    to rounding).
-3. **Surrounding trees.**  ``round(density × area)`` trees over the extent plus ``margin_m``,
-   species from ``surrounding_species``, parameters from the real Bretten distributions
-   (:func:`~vlsforest.synth.species.sample_tree_params`); placed largest crown first by random
-   sequential adsorption with a hard core: stems at least ``min_stem_distance_m`` apart, at
-   least ``0.35 (R_i + R_j)`` from other surrounding trees and ``0.5 (R_i + R_j)`` from targets
-   (the factors relax for a tree that finds no place after many tries).
+3. **Surrounding trees.**  Species from ``surrounding_species``, parameters from the real
+   Bretten distributions (:func:`~vlsforest.synth.species.sample_tree_params`), drawn until the
+   crown projection areas of all trees (targets included) add up to ``canopy_cover`` × the area
+   of the extent plus ``margin_m`` (or ``round(stand_density_per_ha × area)`` trees when that key
+   is not null); placed largest crown first by random sequential adsorption with a hard core:
+   stems at least ``min_stem_distance_m`` apart, at least ``0.6 (R_i + R_j)`` from other
+   surrounding trees and ``0.7 (R_i + R_j)`` from targets (the factors relax for a tree that
+   finds no place after many tries).
+   **Crown plasticity** (:func:`_crown_competition`): every tree learns its competing
+   neighbours, whose crowns cut its envelope where both exist (see
+   :mod:`vlsforest.synth.trees`), and a crown scale ≥ 1 that lets a confined crown grow into the
+   free directions so that it keeps its projection area where there is room.
 4. **Ground.**  One :class:`~vlsforest.synth.ground.GroundSurface` per plot around its centre;
    every stem base sits on it (``z_ground``); :meth:`PlotLayout.ground_z` is the median height
    over the extent, the plane the simulations use.
@@ -49,7 +55,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterable
 
 import numpy as np
@@ -61,11 +67,19 @@ from vlsforest.synth.ground import GroundSurface
 from vlsforest.synth.species import (
     SPECIES,
     TARGET_SPECIES,
+    Neighbour,
     TreeParams,
+    get_species,
     sample_tree_params,
     target_tree_params,
 )
-from vlsforest.synth.trees import TreeGeometry, generate_tree
+from vlsforest.synth.trees import (
+    CROWN_OVERLAP,
+    TreeGeometry,
+    crown_profile,
+    generate_tree,
+    split_distance,
+)
 
 #: the study's plot areas (ha), Weiser et al. (2021) §2
 STUDY_AREAS_HA = {"P1": 0.31, "P2": 0.25, "P3": 0.25, "P4": 0.43, "P5": 0.48, "P6": 0.19}
@@ -86,11 +100,16 @@ DEFAULT_FOREST: dict = {
         "P5": {"targets": {"fagus_sylvatica": 5}, "ground_elevation_m": 290.0},
         "P6": {"targets": {"picea_abies": 5}, "ground_elevation_m": 232.0},
     },
-    # Surrounding stems per hectare.  With the species mix below, trees drawn from the Bretten
-    # distributions (>= 8 m tall) have a mean crown projection area of ≈ 49 m², so 300 stems/ha
-    # give a summed crown area of ≈ 1.5 × the ground area: a closed, multi-layered, mature mixed
-    # stand; it also matches the ≈ 150–300 segmented trees/ha of the densest real Bretten plots.
-    "stand_density_per_ha": 300.0,
+    # How many surrounding trees: enough that the nominal crown projection areas of all trees
+    # (targets included) add up to this multiple of the ground area.  Trees drawn from the
+    # Bretten distributions (>= 8 m tall) have a mean crown projection area of ≈ 49 m², so 1.2
+    # gives ≈ 220–240 stems/ha; crown plasticity (vlsforest.synth.trees) then cuts the crowns
+    # where they meet, leaving a closed canopy: 85–90 % of the ground under a crown, stand LAI
+    # ≈ 7–9.  (Until session 9 the forest used 300 stems/ha without plasticity: crowns adding
+    # up to 1.4–1.7 × the ground area interpenetrated, stand LAI 23–39.)
+    # ``stand_density_per_ha`` (stems per hectare), when not null, is used instead.
+    "canopy_cover": 1.2,
+    "stand_density_per_ha": None,
     # roughly the Bretten composition: beech and spruce dominate, with oak, pine, hornbeam and
     # Douglas fir (pytreedb Bretten plots)
     "surrounding_species": {"fagus_sylvatica": 0.40, "picea_abies": 0.30,
@@ -110,7 +129,8 @@ QUICK_FOREST: dict = {
         "Q1": {"targets": {"fagus_sylvatica": 2, "picea_abies": 2}, "area_ha": 0.22,
                "ground_elevation_m": 240.0},
     },
-    "stand_density_per_ha": 200.0,
+    "canopy_cover": 1.2,
+    "stand_density_per_ha": None,
     "surrounding_species": {"fagus_sylvatica": 0.5, "picea_abies": 0.5},
     "margin_m": 5.0,
     "buffer_m": 20.0,
@@ -123,11 +143,13 @@ QUICK_FOREST: dict = {
 _ID_STRIDE = 10_000
 _SURROUND_K0 = 100
 _N_ARRANGEMENTS = 4000
-_C_TARGET = 0.5       # surrounding-to-target stem distance ≥ 0.5 (R_t + R_s)
-_C_SURROUND = 0.35    # surrounding-to-surrounding stem distance ≥ 0.35 (R_i + R_j)
+_C_TARGET = 0.7       # surrounding-to-target stem distance ≥ 0.7 (R_t + R_s)
+_C_SURROUND = 0.6     # surrounding-to-surrounding stem distance ≥ 0.6 (R_i + R_j)
+_SCALE_MAX = 1.5      # crown plasticity: a confined crown grows by at most this factor
 _MIN_TARGET_HEIGHT = 15.0
 
-_FOREST_KEYS = {"target_area_ha", "plots", "stand_density_per_ha", "surrounding_species",
+_FOREST_KEYS = {"target_area_ha", "plots", "canopy_cover", "stand_density_per_ha",
+                "surrounding_species",
                 "margin_m", "buffer_m", "min_stem_distance_m", "max_triangles_target",
                 "max_triangles_surrounding", "ground"}
 _PLOT_KEYS = {"targets", "target_trees", "area_ha", "ground_elevation_m", "origin_m"}
@@ -300,7 +322,10 @@ def _validate(cfg) -> tuple[dict, list[_PlotCfg]]:
     d.update({k: copy.deepcopy(v) for k, v in cfg.items() if k not in ("plots",
                                                                         "target_area_ha")})
     out = {
-        "density": _num("forest.stand_density_per_ha", d["stand_density_per_ha"], 0.0, 3000.0),
+        "density": (None if d.get("stand_density_per_ha") is None else
+                    _num("forest.stand_density_per_ha", d["stand_density_per_ha"], 0.0, 3000.0)),
+        "cover": (None if d.get("canopy_cover") is None else
+                  _num("forest.canopy_cover", d["canopy_cover"], 0.0, 3.0)),
         "margin": _num("forest.margin_m", d["margin_m"], 0.0, 200.0),
         "buffer": _num("forest.buffer_m", d["buffer_m"], 0.0, 200.0, lo_open=True),
         "dmin": _num("forest.min_stem_distance_m", d["min_stem_distance_m"], 0.0, 20.0),
@@ -312,7 +337,10 @@ def _validate(cfg) -> tuple[dict, list[_PlotCfg]]:
     for name, w in sp.items():
         k = _species(f"forest.surrounding_species.{name}", name)
         weights[k] = weights.get(k, 0.0) + _num(f"forest.surrounding_species.{name}", w, 0.0)
-    if out["density"] > 0 and sum(weights.values()) <= 0:
+    if out["density"] is None and out["cover"] is None:
+        raise ConfigError("forest.canopy_cover: give canopy_cover or stand_density_per_ha")
+    stocked = (out["density"] or 0) > 0 if out["density"] is not None else out["cover"] > 0
+    if stocked and sum(weights.values()) <= 0:
         raise ConfigError("forest.surrounding_species: needs at least one positive weight")
     out["species"] = weights
     g = _mapping("forest.ground", d["ground"])
@@ -548,6 +576,70 @@ def _place_surrounding(params: list[TreeParams], region, fixed_xy: np.ndarray,
     return xy[n_fixed:]
 
 
+def _check_count(n_s: int, plot: str, key: str):
+    if _SURROUND_K0 + n_s > _ID_STRIDE:
+        raise ConfigError(f"{key}: {n_s} surrounding trees in plot {plot} exceed the "
+                          f"{_ID_STRIDE - _SURROUND_K0} a plot can hold")
+
+
+def _crown_competition(params: list[TreeParams], xy: np.ndarray, zg: np.ndarray,
+                       iterations: int = 8, nz: int = 16, nphi: int = 72) -> list[TreeParams]:
+    """Crown plasticity of a plot: every tree's competing neighbours and crown scale.
+
+    Neighbours are the trees whose crowns can reach each other (stem distance below 1.2 × the
+    sum of their scaled radii).  The crown scale ``s_i ∈ [1, 1.5]`` is found by a damped
+    fixed-point iteration over all trees at once: ``s_i ← s_i sqrt(CPA_i / A_i(s))``, where
+    ``A_i`` is the projected area of the cut envelope (the same cut as in
+    :func:`vlsforest.synth.trees.generate_tree`, without the small random asymmetry).  The
+    result is deterministic (no random numbers).
+    """
+    n = len(params)
+    if n == 0:
+        return []
+    R = np.array([p.crown_radius for p in params])
+    cbh = np.array([p.cbh for p in params]) + zg
+    top = np.array([p.height for p in params]) + zg
+    sps = [get_species(p.species) for p in params]
+    d = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    cand = [np.flatnonzero(d[i] < 1.2 * _SCALE_MAX * (R[i] + R)) for i in range(n)]
+    phi = 2 * np.pi * np.arange(nphi) / nphi
+    cphi, sphi = np.cos(phi), np.sin(phi)
+    tz = (np.arange(nz) + 0.5) / nz
+    prof = [crown_profile(sp, tz) for sp in sps]
+    s = np.ones(n)
+
+    def area(i):
+        z = cbh[i] + (top[i] - cbh[i]) * tz                       # absolute heights
+        Ri = s[i] * R[i] * prof[i]                                 # (nz,)
+        Rz = np.repeat(Ri[:, None], nphi, axis=1)                  # (nz, nphi)
+        for j in cand[i]:
+            tj = (z - cbh[j]) / (top[j] - cbh[j])
+            rj = np.where((tj >= 0) & (tj < 1), s[j] * R[j] * crown_profile(sps[j], tj), 0.0)
+            b = split_distance(Ri, rj, d[i, j], CROWN_OVERLAP)
+            ux, uy = (xy[j] - xy[i]) / d[i, j]
+            cosang = cphi * ux + sphi * uy
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lim = np.where(cosang[None, :] > 1e-9,
+                               b[:, None] / np.where(cosang > 1e-9, cosang, 1.0)[None, :], np.inf)
+            Rz = np.minimum(Rz, lim)
+        return float(0.5 * (Rz.max(axis=0) ** 2).sum() * 2 * np.pi / nphi)
+
+    for _ in range(iterations):
+        a = np.array([area(i) for i in range(n)])
+        target = np.clip(s * np.sqrt(np.pi * R**2 / np.maximum(a, 1e-9)), 1.0, _SCALE_MAX)
+        s = np.sqrt(s * target)  # damped
+    out = []
+    for i, p in enumerate(params):
+        nbs = tuple(
+            Neighbour(dx=float(xy[j, 0] - xy[i, 0]), dy=float(xy[j, 1] - xy[i, 1]),
+                      cbh=float(cbh[j] - zg[i]), height=float(top[j] - zg[i]),
+                      radius=float(s[j] * R[j]), species=params[j].species)
+            for j in cand[i] if d[i, j] < 1.2 * (s[i] * R[i] + s[j] * R[j]))
+        out.append(replace(p, crown_scale=float(round(s[i], 6)), neighbours=nbs))
+    return out
+
+
 def _layout_plot(pc: _PlotCfg, opts: dict, seed: int) -> PlotLayout:
     pseed = _plot_seed(seed, pc.index)
     rng = np.random.default_rng(pseed)
@@ -565,25 +657,37 @@ def _layout_plot(pc: _PlotCfg, opts: dict, seed: int) -> PlotLayout:
     m = opts["margin"]
     region = (extent[0] - m, extent[1] - m, extent[2] + m, extent[3] + m)
     area_r = (region[2] - region[0]) * (region[3] - region[1])
-    n_s = int(round(opts["density"] * area_r / 1e4))
-    if _SURROUND_K0 + n_s > _ID_STRIDE:
-        raise ConfigError(f"forest.stand_density_per_ha: {n_s} surrounding trees in plot "
-                          f"{pc.name} exceed the {_ID_STRIDE - _SURROUND_K0} a plot can hold")
     names = sorted(opts["species"])
     w = np.array([opts["species"][k] for k in names], dtype=float)
-    sparams = []
+    if opts["density"] is not None:
+        n_s = int(round(opts["density"] * area_r / 1e4))
+        _check_count(n_s, pc.name, "forest.stand_density_per_ha")
+        sparams = []
+        if n_s:
+            sp_idx = rng.choice(len(names), size=n_s, p=w / w.sum())
+            sparams = [sample_tree_params(names[i], rng, max_triangles=opts["tri_s"])
+                       for i in sp_idx]
+    else:
+        # draw trees until the crowns of all trees add up to the canopy cover of the region
+        need = opts["cover"] * area_r - sum(p.cpa for p in tparams)
+        sparams = []
+        while need > 0:
+            i = int(rng.choice(len(names), p=w / w.sum()))
+            sparams.append(sample_tree_params(names[i], rng, max_triangles=opts["tri_s"]))
+            need -= sparams[-1].cpa
+            _check_count(len(sparams), pc.name, "forest.canopy_cover")
+    n_s = len(sparams)
     if n_s:
-        sp_idx = rng.choice(len(names), size=n_s, p=w / w.sum())
-        sparams = [sample_tree_params(names[i], rng, max_triangles=opts["tri_s"])
-                   for i in sp_idx]
         order = sorted(range(n_s), key=lambda i: -sparams[i].cpa)
         sparams = [sparams[i] for i in order]
     sxy = _place_surrounding(sparams, region, txy, np.array([p.crown_radius for p in tparams]),
                              opts["dmin"], rng, f"forest.plots.{pc.name}")
-    base = _ID_STRIDE * pc.index
-    trees = []
     allxy = np.concatenate([txy, sxy.reshape(-1, 2)])
     zg = ground.z(allxy[:, 0], allxy[:, 1]) if allxy.size else np.zeros(0)
+    allp = _crown_competition(list(tparams) + list(sparams), allxy, zg)
+    tparams, sparams = allp[:len(tparams)], allp[len(tparams):]
+    base = _ID_STRIDE * pc.index
+    trees = []
     for k, (p, (x, y), z) in enumerate(zip(tparams, txy, zg[:len(tparams)])):
         trees.append(TreeSpec(tree_id=base + k, plot=pc.name, species=p.species, target=True,
                               x=float(x), y=float(y), z_ground=float(z), params=p))

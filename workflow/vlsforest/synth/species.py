@@ -122,8 +122,11 @@ class SpeciesParams:
         shoot for conifers); enlarged automatically to stay within a tree's triangle budget.
     leaf_aspect : float
         Length/width of a foliage element (triangle height over base).
-    target_pad : float
-        Foliage area per crown-envelope volume (m²/m³).
+    crown_lai : float
+        One-sided foliage area per unit of crown projection area (m²/m²): the leaf area index
+        under the tree's own crown.  Literature values for closed stands (stand LAI ≈ crown LAI ×
+        canopy cover): beech 5–8, hornbeam 5–6, sessile oak 4–6, Norway spruce 7–12 (hemi-surface),
+        Douglas fir 8–10, Scots pine 2.5–4.
     foliage_start : float
         Foliage sits on the outer ``1 − foliage_start`` of each twig (a foliated shell).
     clump_radius : float
@@ -159,7 +162,7 @@ class SpeciesParams:
     leaf_angle_distribution: str
     leaf_element_area: float
     leaf_aspect: float
-    target_pad: float
+    crown_lai: float
     foliage_start: float
     clump_radius: float
     gap_fraction: float
@@ -183,37 +186,37 @@ SPECIES: dict[str, SpeciesParams] = {
         key="fagus_sylvatica", latin="Fagus sylvatica", crown_widest=0.45,
         crown_base_fraction=0.35, branch_density=2.5, branch_angle_base=72.0,
         branch_angle_top=35.0, branch_droop=-12.0, twig_density=1.6, twig_angle=45.0,
-        twig_length=0.45, leaf_element_area=0.01, target_pad=1.4, foliage_start=0.35,
+        twig_length=0.45, leaf_element_area=0.01, crown_lai=7.0, foliage_start=0.35,
         clump_radius=0.3, gap_fraction=0.15, **_BROADLEAF_DEFAULTS),
     "carpinus_betulus": SpeciesParams(
         key="carpinus_betulus", latin="Carpinus betulus", crown_widest=0.4,
         crown_base_fraction=0.4, branch_density=3.0, branch_angle_base=70.0,
         branch_angle_top=40.0, branch_droop=-8.0, twig_density=1.8, twig_angle=50.0,
-        twig_length=0.45, leaf_element_area=0.008, target_pad=1.5, foliage_start=0.35,
+        twig_length=0.45, leaf_element_area=0.008, crown_lai=6.0, foliage_start=0.35,
         clump_radius=0.25, gap_fraction=0.15, **_BROADLEAF_DEFAULTS),
     "quercus_petraea": SpeciesParams(
         key="quercus_petraea", latin="Quercus petraea", crown_widest=0.5,
         crown_base_fraction=0.5, branch_density=1.6, branch_angle_base=68.0,
         branch_angle_top=45.0, branch_droop=-5.0, twig_density=1.5, twig_angle=55.0,
-        twig_length=0.5, leaf_element_area=0.01, target_pad=1.2, foliage_start=0.4,
+        twig_length=0.5, leaf_element_area=0.01, crown_lai=5.0, foliage_start=0.4,
         clump_radius=0.35, gap_fraction=0.2, **_BROADLEAF_DEFAULTS),
     "picea_abies": SpeciesParams(
         key="picea_abies", latin="Picea abies", crown_widest=0.08,
         crown_base_fraction=0.8, whorl_spacing=0.5, branches_per_whorl=5,
         branch_angle_base=95.0, branch_angle_top=65.0, branch_droop=12.0, twig_density=2.0,
-        twig_angle=55.0, twig_length=0.35, leaf_element_area=0.005, target_pad=3.8,
+        twig_angle=55.0, twig_length=0.35, leaf_element_area=0.005, crown_lai=10.0,
         foliage_start=0.15, clump_radius=0.2, gap_fraction=0.1, **_CONIFER_DEFAULTS),
     "pseudotsuga_menziesii": SpeciesParams(
         key="pseudotsuga_menziesii", latin="Pseudotsuga menziesii", crown_widest=0.15,
         crown_base_fraction=0.7, whorl_spacing=0.6, branches_per_whorl=5,
         branch_angle_base=90.0, branch_angle_top=60.0, branch_droop=8.0, twig_density=2.0,
-        twig_angle=55.0, twig_length=0.4, leaf_element_area=0.006, target_pad=3.0,
+        twig_angle=55.0, twig_length=0.4, leaf_element_area=0.006, crown_lai=8.5,
         foliage_start=0.2, clump_radius=0.2, gap_fraction=0.15, **_CONIFER_DEFAULTS),
     "pinus_sylvestris": SpeciesParams(
         key="pinus_sylvestris", latin="Pinus sylvestris", crown_widest=0.35,
         crown_base_fraction=0.5, whorl_spacing=0.7, branches_per_whorl=4,
         branch_angle_base=80.0, branch_angle_top=50.0, branch_droop=5.0, twig_density=1.5,
-        twig_angle=50.0, twig_length=0.45, leaf_element_area=0.006, target_pad=2.5,
+        twig_angle=50.0, twig_length=0.45, leaf_element_area=0.006, crown_lai=3.5,
         foliage_start=0.5, clump_radius=0.22, gap_fraction=0.25,
         **{**_CONIFER_DEFAULTS, "crown_shape": "paraboloid"}),
 }
@@ -234,6 +237,30 @@ def get_species(key: str) -> SpeciesParams:
 
 
 @dataclass(frozen=True)
+class Neighbour:
+    """A competing crown, relative to the stem base of the tree it confines.
+
+    Attributes
+    ----------
+    dx, dy : float
+        Horizontal offset of the neighbour's stem base (m).
+    cbh, height : float
+        Its crown base and top, as heights above the confined tree's stem base (m).
+    radius : float
+        Its widest envelope radius (m, crown scale included).
+    species : str
+        Its species key (the crown profile shape).
+    """
+
+    dx: float
+    dy: float
+    cbh: float
+    height: float
+    radius: float
+    species: str
+
+
+@dataclass(frozen=True)
 class TreeParams:
     """Inputs of one generated tree.
 
@@ -249,12 +276,19 @@ class TreeParams:
         Crown base height: height of the lowest living branch or foliage (m).
     cpa : float
         Crown projection area (m²), 2-D convex hull of the crown.
-    target_pad : float or None
-        Foliage area per crown-envelope volume (m²/m³); None → the species default.
+    crown_lai : float or None
+        One-sided foliage area per crown projection area (m²/m²); None → the species default.
     leaf_element_area : float or None
         Minimum one-sided area of one foliage element (m²); None → the species default.
     max_triangles : int
         Triangle budget of the whole tree; the foliage element area grows to respect it.
+    crown_scale : float
+        Crown plasticity: the envelope radius is multiplied by this factor (≥ 1) so that a crown
+        that neighbours confine on some sides grows into the free ones (set by the forest layout).
+    neighbours : tuple of Neighbour
+        Competing crowns (set by the forest layout): in the height range where both crowns
+        exist, the crown stays on its side of the boundary that splits the stem distance in
+        proportion to the two crowns' radii at that height (see :mod:`vlsforest.synth.trees`).
     """
 
     species: str
@@ -262,9 +296,11 @@ class TreeParams:
     dbh: float
     cbh: float
     cpa: float
-    target_pad: float | None = None
+    crown_lai: float | None = None
     leaf_element_area: float | None = None
     max_triangles: int = 150_000
+    crown_scale: float = 1.0
+    neighbours: tuple = ()
 
     def __post_init__(self):
         get_species(self.species)
@@ -286,8 +322,14 @@ class TreeParams:
                               f"{self.height} m")
         if self.cpa <= 0:
             raise ConfigError(f"cpa: must be > 0, got {self.cpa}")
-        if self.target_pad is not None and not (0 < self.target_pad < 50):
-            raise ConfigError(f"target_pad: must be in (0, 50) m²/m³, got {self.target_pad}")
+        if self.crown_lai is not None and not (0 < self.crown_lai < 50):
+            raise ConfigError(f"crown_lai: must be in (0, 50) m²/m², got {self.crown_lai}")
+        if not (isinstance(self.crown_scale, (int, float, np.floating, np.integer))
+                and 0.2 <= self.crown_scale <= 5.0):
+            raise ConfigError(f"crown_scale: must be in [0.2, 5], got {self.crown_scale!r}")
+        for nb in self.neighbours:
+            if not isinstance(nb, Neighbour):
+                raise ConfigError(f"neighbours: expected Neighbour entries, got {type(nb).__name__}")
         if self.leaf_element_area is not None and not (0 < self.leaf_element_area < 1):
             raise ConfigError(f"leaf_element_area: must be in (0, 1) m², got "
                               f"{self.leaf_element_area}")
@@ -440,7 +482,7 @@ def target_tree_params(rng: np.random.Generator, max_triangles: int = 150_000,
 
 
 __all__ = [
-    "SpeciesParams", "SPECIES", "get_species", "TreeParams", "leaf_angle_pdf",
+    "SpeciesParams", "SPECIES", "get_species", "Neighbour", "TreeParams", "leaf_angle_pdf",
     "sample_leaf_inclination", "load_bretten_summary", "sample_tree_params",
     "target_tree_params", "TABLE1", "TARGET_SPECIES",
 ]

@@ -16,21 +16,34 @@
   drawn from the species' leaf angle distribution (planophile / erectophile).
 
 Crown envelope: a surface of revolution about the stem centreline, from the crown base (CBH) to
-the tree top, with radius ``R(z, φ) = R_max f(t) m(φ)``, ``t = (z−CBH)/(H−CBH)``; ``f`` rises from
-``crown_base_fraction`` to 1 at ``crown_widest`` and falls to 0 at the top as an ellipse,
-paraboloid or cone; ``m(φ)`` is a small first- and second-harmonic asymmetry.  ``R_max`` is chosen
-so that the convex hull of the widest outline equals the requested CPA.
+the tree top, with radius ``R(z, φ) = s R_max f(t) m(φ)``, ``t = (z−CBH)/(H−CBH)``; ``f``
+(:func:`crown_profile`) rises from ``crown_base_fraction`` to 1 at ``crown_widest`` and falls to 0
+at the top as an ellipse, paraboloid or cone; ``m(φ)`` is a small first- and second-harmonic
+asymmetry.  ``R_max`` is chosen so that the convex hull of the widest outline equals the requested
+CPA.
 
-Foliage amount and element size (the memory budget): the one-sided foliage area is
-``target_pad × V_envelope``.  Foliage elements have the species' ``leaf_element_area`` (0.005–0.01
-m², i.e. a cluster of a few leaves or one needle shoot) unless the tree's ``max_triangles`` budget
-(after the woody parts) would be exceeded; then the element area grows so that the element count
-fits, always keeping the one-sided foliage area exact (``TreeGeometry.foliage_element_area``
-reports the size used).  With the default 150 000 triangles the 30 study targets get elements of
-0.005–0.045 m² (median ≈ 0.015 m²; the largest beech crowns the coarsest); surrounding trees
-(40 000 triangles by default) coarser ones.  Calibration: the species' ``target_pad`` values
-(broadleaf 1.2–1.5, conifers 2.5–3.8 m²/m³ over the envelope) put the median PAD of the foliated
-0.25 m voxels at ≈ 1.3–2.4 (broadleaf) and ≈ 2.0–2.6 (spruce).
+Crown plasticity (``TreeParams.neighbours``, ``crown_scale``; set by the forest layout): real
+crowns in a closed stand do not interpenetrate, they fill the gaps between them.  At every height
+where a neighbour's crown exists too, the envelope is cut by the line perpendicular to the stem–stem
+direction that splits the stem distance ``d`` in proportion to the two crowns' radii there
+(:func:`split_distance`, times :data:`CROWN_OVERLAP` = 1.1: crowns interdigitate a little); a taller
+tree above its neighbour's top, or a tree below its neighbour's crown base, is not cut.  The
+layout grows the crown scale ``s ≥ 1`` so that a crown cut on some sides keeps its nominal
+projection area where the free sides allow (up to ``s = 1.5``).
+
+Foliage amount and element size (the memory budget): the one-sided foliage area is the species'
+``crown_lai`` (leaf area per crown projection area: beech 7, hornbeam 6, oak 5, spruce 10, Douglas
+fir 8.5, pine 3.5 m²/m²) times the envelope's projected area, so a closed stand (canopy cover ≈ 1)
+has a stand LAI of ≈ 6–9 as measured in beech and spruce forests.  Foliage elements have the
+species' ``leaf_element_area`` (0.005–0.01 m², i.e. a cluster of a few leaves or one needle
+shoot) unless the tree's ``max_triangles`` budget (after the woody parts) would be exceeded; then
+the element area grows so that the element count fits, always keeping the one-sided foliage area
+exact (``TreeGeometry.foliage_element_area`` reports the size used).  The foliage sits on the outer
+part of the twigs, clumped, with metre-scale gaps, so the foliated 0.25 m voxels hold a plant area
+density of a few m²/m³: half of the foliage of the study's target trees lies in voxels denser than
+≈ 2.1 (beech), 2.5 (hornbeam), 3.8 (spruce) m²/m³ (broadleaf ≈ 1–5, conifer ≈ 2–8;
+``tests/test_synth_trees.py``), while the crown as a whole (envelope mean 0.2–2 m²/m³) is much
+sparser.
 
 Truth is computed from the geometry: height = highest vertex above ground, CBH = lowest branch or
 foliage vertex above ground, CPA = area of the 2-D convex hull of branch and foliage vertices,
@@ -52,7 +65,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlsforest.errors import ConfigError
-from vlsforest.synth.species import SpeciesParams, TreeParams, sample_leaf_inclination
+from vlsforest.synth.species import (
+    SpeciesParams,
+    TreeParams,
+    get_species,
+    sample_leaf_inclination,
+)
 
 ORGAN_STEM = 0
 ORGAN_BRANCH = 1
@@ -100,7 +118,10 @@ class TreeGeometry:
     height, dbh, cbh, cpa, crown_radius : float
         Truth measured on the geometry (m, m, m, m², m).
     crown_volume : float
-        Volume of the crown envelope (m³).
+        Volume of the crown envelope (m³), neighbour cuts included.
+    envelope_area : float
+        Projected area of the crown envelope (m², neighbour cuts included); the foliage area is
+        the species' crown LAI times this area.
     foliage_element_area : float
         One-sided area of each foliage element actually used (m²).
     params : TreeParams
@@ -119,6 +140,7 @@ class TreeGeometry:
     cpa: float
     crown_radius: float
     crown_volume: float
+    envelope_area: float
     foliage_element_area: float
     params: TreeParams = field(repr=False)
 
@@ -201,8 +223,54 @@ class _Stem:
         return np.where(z >= _BREAST_HEIGHT, above, below)
 
 
+def crown_profile(sp: SpeciesParams, t) -> np.ndarray:
+    """Relative envelope radius ``f(t)`` of a species' crown, ``t`` = 0 at the crown base, 1 at
+    the top: rises from ``crown_base_fraction`` to 1 at ``crown_widest``, then falls to 0 as an
+    ellipse, paraboloid or cone."""
+    t = np.clip(np.asarray(t, dtype=float), 0.0, 1.0)
+    tw, f0 = sp.crown_widest, sp.crown_base_fraction
+    lo = f0 + (1 - f0) * np.sqrt(np.clip(1 - ((tw - t) / tw) ** 2, 0, 1))
+    u = np.clip((t - tw) / (1 - tw), 0, 1)
+    if sp.crown_shape == "ellipsoid":
+        hi = np.sqrt(np.clip(1 - u**2, 0, 1))
+    elif sp.crown_shape == "paraboloid":
+        hi = np.sqrt(1 - u)
+    elif sp.crown_shape == "cone":
+        hi = 1 - u
+    else:
+        raise ConfigError(f"crown_shape: unknown shape {sp.crown_shape!r}")
+    return np.where(t < tw, lo, hi)
+
+
+def neighbour_radius(nb, z) -> np.ndarray:
+    """Envelope radius (without azimuthal modulation) of a neighbour's crown at heights ``z``
+    (above the confined tree's stem base); 0 outside its crown."""
+    z = np.asarray(z, dtype=float)
+    L = nb.height - nb.cbh
+    t = (z - nb.cbh) / L
+    r = nb.radius * crown_profile(get_species(nb.species), t)
+    return np.where((t >= 0) & (t < 1), r, 0.0)
+
+
+def split_distance(r_own, r_nb, d, overlap):
+    """Distance from the own stem to the boundary with a neighbour ``d`` away: the stem distance
+    split in proportion to the two crown radii at that height, times ``overlap`` (≥ 1 lets
+    crowns interdigitate); ∞ where the neighbour has no crown."""
+    r_own = np.asarray(r_own, dtype=float)
+    r_nb = np.asarray(r_nb, dtype=float)
+    tot = r_own + r_nb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = overlap * d * np.where(tot > 0, r_own / np.where(tot > 0, tot, 1.0), 1.0)
+    return np.where(r_nb > 0, b, np.inf)
+
+
+#: crowns interdigitate by this much: the two sides of a boundary add up to 1.1 × the stem distance
+CROWN_OVERLAP = 1.1
+
+
 class _Envelope:
-    """Crown envelope: radius R(z, φ) = R_max f(t) m(φ) about the stem centreline."""
+    """Crown envelope: radius R(z, φ) = s R_max f(t) m(φ) about the stem centreline, cut by the
+    boundaries with competing neighbours (crown plasticity)."""
 
     def __init__(self, sp: SpeciesParams, p: TreeParams, stem: _Stem, rng: np.random.Generator):
         self.sp = sp
@@ -215,31 +283,57 @@ class _Envelope:
         ang = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
         m = self.modulation(ang)
         hull1 = _hull_area_2d(np.c_[m * np.cos(ang), m * np.sin(ang)])
-        self.rmax = math.sqrt(float(p.cpa) / hull1)
-        t = np.linspace(0.0, 1.0, 2001)
-        f2 = self.profile(t) ** 2
-        int_f2 = float(np.sum(0.5 * (f2[1:] + f2[:-1])) * (t[1] - t[0]))
-        self.volume = self.L * self.rmax**2 * int_f2 * np.pi * (1 + 0.5 * (self.a**2).sum())
+        self.scale = float(p.crown_scale)
+        self.rmax = math.sqrt(float(p.cpa) / hull1) * self.scale
+        # the nominal (unmodulated) widest radius, as the forest layout sees this crown
+        self.r_nominal = math.sqrt(float(p.cpa) / math.pi) * self.scale
+        self.neighbours = tuple(p.neighbours)
+        self._nb = []
+        for nb in self.neighbours:
+            d = math.hypot(nb.dx, nb.dy)
+            if d > 0:
+                self._nb.append((nb, d, nb.dx / d, nb.dy / d))
+        self.volume, self.area = self._measure()
+
+    def _measure(self, nz: int = 64, nphi: int = 180):
+        """Volume (m³) and projected area (m², star-shaped outline) of the cut envelope."""
+        z = self.cbh + self.L * (np.arange(nz) + 0.5) / nz
+        phi = 2 * np.pi * np.arange(nphi) / nphi
+        zz, pp = np.meshgrid(z, phi, indexing="ij")
+        R = self.radius_at(zz, pp)
+        dphi = 2 * np.pi / nphi
+        vol = float((0.5 * R**2).sum() * dphi * self.L / nz)
+        # the outline over all heights, about the crown axis at mid-crown (lean is small)
+        area = float(0.5 * (R.max(axis=0) ** 2).sum() * dphi)
+        return vol, area
 
     def modulation(self, phi):
         a, p = self.a, self.phi
         return 1.0 + a[0] * np.cos(phi - p[0]) + a[1] * np.cos(2 * (phi - p[1]))
 
     def profile(self, t):
-        sp = self.sp
-        t = np.clip(np.asarray(t, dtype=float), 0.0, 1.0)
-        tw, f0 = sp.crown_widest, sp.crown_base_fraction
-        lo = f0 + (1 - f0) * np.sqrt(np.clip(1 - ((tw - t) / tw) ** 2, 0, 1))
-        u = np.clip((t - tw) / (1 - tw), 0, 1)
-        if sp.crown_shape == "ellipsoid":
-            hi = np.sqrt(np.clip(1 - u**2, 0, 1))
-        elif sp.crown_shape == "paraboloid":
-            hi = np.sqrt(1 - u)
-        elif sp.crown_shape == "cone":
-            hi = 1 - u
-        else:
-            raise ConfigError(f"crown_shape: unknown shape {sp.crown_shape!r}")
-        return np.where(t < tw, lo, hi)
+        return crown_profile(self.sp, t)
+
+    def radius_at(self, z, phi):
+        """Envelope radius at heights ``z`` and azimuths ``phi`` about the crown axis."""
+        z = np.asarray(z, dtype=float)
+        phi = np.asarray(phi, dtype=float)
+        R = self.rmax * self.profile((z - self.cbh) / self.L) * self.modulation(phi)
+        R = np.where(z >= self.H, 0.0, R)
+        if self._nb:
+            own = self.r_nominal * self.profile((z - self.cbh) / self.L)
+            c = self.stem.centre(z)
+            cphi, sphi = np.cos(phi), np.sin(phi)
+            for nb, d, ux, uy in self._nb:
+                b = split_distance(own, neighbour_radius(nb, z), d, CROWN_OVERLAP)
+                # the boundary relative to the (leaning) crown axis at this height
+                b = np.maximum(b - (c[..., 0] * ux + c[..., 1] * uy), 0.05)
+                cosang = cphi * ux + sphi * uy
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    lim = np.where(cosang > 1e-9, b / np.where(cosang > 1e-9, cosang, 1.0),
+                                   np.inf)
+                R = np.minimum(R, lim)
+        return R
 
     def polar(self, pts: np.ndarray):
         """(r, φ, R) of points: distance from the axis, azimuth, envelope radius there."""
@@ -247,8 +341,7 @@ class _Envelope:
         d = pts[..., :2] - self.stem.centre(z)
         r = np.hypot(d[..., 0], d[..., 1])
         phi = np.arctan2(d[..., 1], d[..., 0])
-        R = self.rmax * self.profile((z - self.cbh) / self.L) * self.modulation(phi)
-        R = np.where(z >= self.H, 0.0, R)
+        R = self.radius_at(z, phi)
         return r, phi, R, d
 
     def rho(self, pts: np.ndarray) -> np.ndarray:
@@ -505,7 +598,7 @@ def generate_tree(params: TreeParams, position=(0.0, 0.0, 0.0), rng=None,
     tv, tf = _tubes(path2[mesh_twigs], rad2[mesh_twigs], sides2)
 
     # ---- foliage
-    foliage_area = (params.target_pad or sp.target_pad) * env.volume
+    foliage_area = (params.crown_lai or sp.crown_lai) * env.area
     woody_tris = s_faces.shape[0] + bf.shape[0] + tf.shape[0]
     n_max = max(budget - woody_tris, 100)
     elem_area = max(params.leaf_element_area or sp.leaf_element_area, foliage_area / n_max)
@@ -585,6 +678,7 @@ def generate_tree(params: TreeParams, position=(0.0, 0.0, 0.0), rng=None,
         vertices=vertices, faces=faces, organ=organ, stem_mesh=stem_mesh, species=sp.key,
         position=pos.copy(), height=height, dbh=dbh, cbh=cbh_true, cpa=cpa,
         crown_radius=math.sqrt(cpa / math.pi), crown_volume=float(env.volume),
+        envelope_area=float(env.area),
         foliage_element_area=float(elem_area), params=params)
 
 
