@@ -329,6 +329,37 @@ def test_extract_reference_radius_and_nearest_tree():
     assert extract_simulated(sim, {51: 5, 52: 5, 81: 8}).tolist() == [5, 5, 0, 0, 8]
 
 
+def test_extract_reference_leaves_ground_out_so_cbh_is_the_crowns():
+    """A stem foot's ground ring within 0.5 m would make the lowest slice > 1.5 m wide (CBH 0.05 m)."""
+    from vlsforest.metrics import tree_metrics
+
+    rng = np.random.default_rng(3)
+    zs = np.arange(0.0, 12.0, 0.05)
+    ang = rng.uniform(0, 2 * np.pi, len(zs))
+    stem = np.c_[0.3 * np.cos(ang), 0.3 * np.sin(ang), zs]               # TLS stem, r 0.3 m, 0-12 m
+    r, a = 2.5 * np.sqrt(rng.uniform(0, 1, 3000)), rng.uniform(0, 2 * np.pi, 3000)
+    crown = np.c_[r * np.cos(a), r * np.sin(a), rng.uniform(8.0, 12.0, 3000)]  # crown 8-12 m
+    tls = np.vstack([stem, crown])
+    g = np.arange(-3.0, 3.0001, 0.1)
+    gx, gy = np.meshgrid(g, g)
+    ground = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]              # ALS ground returns
+    als = np.vstack([ground, crown[::3] + [0.05, 0.0, 0.0], stem[::10]])
+    cls = np.r_[np.full(len(ground), 2), np.full(len(als) - len(ground), 5)].astype(np.uint8)
+    cloud = PointCloud(als, {"classification": cls})
+    kept = extract_reference({1: tls}, cloud, 0.5)
+    every = extract_reference({1: tls}, cloud, 0.5, exclude_classes=())
+    ring = every.astype(bool) & (cls == 2)
+    from scipy.spatial.distance import pdist
+
+    assert ring.sum() > 100 and pdist(als[ring, :2]).max() > 1.5    # the ring is there without the filter
+    assert not (kept.astype(bool) & (cls == 2)).any()              # and gone with it
+    assert np.array_equal(kept.astype(bool), every.astype(bool) & (cls != 2))
+    assert tree_metrics(als[every == 1])["cbh"] == 0.05
+    assert 8.0 <= tree_metrics(als[kept == 1])["cbh"] <= 8.2
+    # a cloud without classification keeps every point (nothing to go by)
+    assert np.array_equal(extract_reference({1: tls}, PointCloud(als, {}), 0.5), every)
+
+
 def test_column_index_boxes_miss_no_point():
     from vlsforest.extract import _ColumnIndex
 
@@ -388,3 +419,28 @@ def test_survey_from_trajectory():
     survey_from_dict(s)
     with pytest.raises(InputDataError, match="columns"):
         survey_from_trajectory({"scanner": "riegl_vq780i"}, traj.drop(columns="source_id"))
+
+
+def test_extract_reference_cli_drops_ground_and_rejects_bad_classes(tmp_path, capsys):
+    import pandas as pd
+
+    from vlsforest.cli import main as cli_main
+    from vlsforest.io.las import read_las, write_las
+
+    tls = np.c_[np.zeros(40), np.zeros(40), np.linspace(0, 4, 40)]
+    write_las(tmp_path / "seg" / "trees" / "7.laz", PointCloud(tls, {}))
+    pd.DataFrame({"target_id": [301], "tree_id": [7]}).to_csv(tmp_path / "targets.csv", index=False)
+    pts = np.array([[0.2, 0, 0.0], [0.3, 0, 0.0], [0.1, 0, 2.0], [0.0, 0.2, 3.9], [3.0, 0, 2.0]])
+    cls = np.array([2, 2, 5, 7, 5], np.uint8)
+    write_las(tmp_path / "als.laz", PointCloud(pts, {"classification": cls}))
+    base = ["extract", "reference", str(tmp_path / "als.laz"), "--segment", str(tmp_path / "seg"),
+            "--targets", str(tmp_path / "targets.csv"), "--radius", "0.5"]
+    assert cli_main([*base, "-o", str(tmp_path / "a.laz")]) == 0
+    assert "3 points of classes 2,7,18 left out" in capsys.readouterr().out
+    a = read_las(tmp_path / "a.laz")
+    assert np.allclose(a.xyz, [[0.1, 0, 2.0]], atol=1e-3) and a.attrs["tree_id"].tolist() == [301]
+    assert cli_main([*base, "--exclude-classes", "", "-o", str(tmp_path / "b.laz")]) == 0
+    assert len(read_las(tmp_path / "b.laz")) == 4
+    assert cli_main([*base, "--exclude-classes", "2,ground", "-o", str(tmp_path / "c.laz")]) != 0
+    assert "not a comma-separated list" in capsys.readouterr().err
+    assert not (tmp_path / "c.laz").exists()

@@ -4,8 +4,11 @@
   a plot's ``plot.json``) with the trees found by :mod:`vlsforest.segment`;
 * :func:`extract_reference` labels the points of a real ALS/ULS recording as a target tree when
   they lie within ``radius`` (the study: 0.5 m ALS, 0.3 m ULS) of that tree's TLS points
-  (KD-trees); a point near two trees goes to the nearest. All returns are kept with their
-  return number, number of returns and GPS time (multiple-return shares need them).
+  (KD-trees); a point near two trees goes to the nearest. Returns classified as ground or
+  noise (ASPRS classes 2, 7, 18) are never a tree's: with a 0.5 m radius the ground around a
+  stem foot would otherwise join the tree and pull its crown base height to 0 m. All other
+  returns are kept with their return number, number of returns and GPS time (multiple-return
+  shares need them).
 * :func:`extract_simulated` takes the points of a simulated cloud by object id (each target's
   stem and crown carry their own ids, :func:`vlsforest.scene.object_ids`).
 """
@@ -129,7 +132,12 @@ class _ColumnIndex:
         return np.concatenate([self.order[a:b] for a, b in zip(starts, ends)])
 
 
-def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np.ndarray:
+#: ASPRS LAS classes never assigned to a tree: ground, low noise, high noise
+NOT_TREE_CLASSES = (2, 7, 18)
+
+
+def extract_reference(tree_points: dict, cloud: PointCloud, radius: float,
+                      exclude_classes=NOT_TREE_CLASSES) -> np.ndarray:
     """Label the points of a real recording by their nearest target tree.
 
     Parameters
@@ -142,6 +150,11 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np
         A point belongs to a tree when its distance to the tree's nearest TLS point is ≤ radius
         (the study: 0.5 m ALS, 0.3 m ULS); a point within the radius of two trees goes to the
         nearer one (ties: the smaller id).
+    exclude_classes : sequence of int
+        LAS classes that are never labelled (default ground 2, noise 7 and 18). Without them the
+        ground ring within ``radius`` of a stem foot joins the tree (its lowest 0.1 m slice is
+        then wider than 1.5 m and the paper's CBH becomes 0.05 m). Ignored when ``cloud`` has no
+        ``classification`` attribute; ``()`` keeps every class.
 
     Returns
     -------
@@ -158,6 +171,10 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np
     if n == 0:
         return label
     xyz = cloud.xyz
+    eligible = np.ones(n, dtype=bool)
+    cls = cloud.attrs.get("classification")
+    if cls is not None and len(exclude_classes):
+        eligible = ~np.isin(np.asarray(cls), np.asarray(list(exclude_classes), dtype=np.int64))
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     columns = _ColumnIndex(xyz[:, :2])  # a tree's box then reads only the points of its columns
     for tid in sorted(tree_points):
@@ -170,7 +187,7 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float) -> np
         if np.any(thi < lo) or np.any(tlo > hi):
             continue
         near = columns.box(tlo[0], tlo[1], thi[0], thi[1])
-        cand = near[np.all((xyz[near] >= tlo) & (xyz[near] <= thi), axis=1)]
+        cand = near[np.all((xyz[near] >= tlo) & (xyz[near] <= thi), axis=1) & eligible[near]]
         if len(cand) == 0:
             continue
         d, _ = cKDTree(pts).query(xyz[cand], k=1, distance_upper_bound=radius)
@@ -208,4 +225,4 @@ def extract_simulated(cloud: PointCloud, id_map: dict) -> np.ndarray:
     return out
 
 
-__all__ = ["SPECIES_GROUP", "extract_reference", "extract_simulated", "match_targets", "species_group"]
+__all__ = ["NOT_TREE_CLASSES", "SPECIES_GROUP", "extract_reference", "extract_simulated", "match_targets", "species_group"]

@@ -24,6 +24,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     r.add_argument("--segment", required=True, type=Path, help="segmentation folder (trees/{id}.laz)")
     r.add_argument("--targets", required=True, type=Path, help="targets.csv (vlsforest scene targets)")
     r.add_argument("--radius", required=True, type=float, help="extraction radius (m)")
+    r.add_argument("--exclude-classes", default="2,7,18", metavar="C,C,…",
+                   help="LAS classes never assigned to a tree (default 2,7,18: ground and noise; "
+                        "'' keeps every class)")
     r.add_argument("-o", "--output", required=True, type=Path)
     s = sub.add_parser("sim", help="take a simulated cloud's target points by object id")
     s.add_argument("cloud", type=Path, help="simulated LAS/LAZ (with object_id)")
@@ -46,6 +49,18 @@ def _targets(path: Path):
     return df
 
 
+def _classes(text: str) -> tuple:
+    from vlsforest.errors import ConfigError
+
+    try:
+        out = tuple(int(c) for c in text.replace(" ", "").split(",") if c)
+    except ValueError:
+        raise ConfigError(f"--exclude-classes: {text!r} is not a comma-separated list of LAS classes") from None
+    if any(not 0 <= c <= 255 for c in out):
+        raise ConfigError(f"--exclude-classes: LAS classes are 0-255, got {text!r}")
+    return out
+
+
 def run(args) -> int:
     """Execute ``vlsforest extract``."""
     import numpy as np
@@ -65,7 +80,13 @@ def run(args) -> int:
             if not f.is_file():
                 raise InputDataError(f"{f}: segmented tree {tid} (a target) is missing")
             pts[tid] = read_las(f).xyz
-        lab = extract_reference(pts, cloud, args.radius)
+        excl = _classes(args.exclude_classes)
+        lab = extract_reference(pts, cloud, args.radius, exclude_classes=excl)
+        if "classification" in cloud.attrs and excl:
+            n_out = int(np.isin(cloud.attrs["classification"], excl).sum())
+            print(f"extract reference: {n_out} points of classes {','.join(map(str, excl))} left out")
+        else:
+            print("extract reference: no classification in the recording, every point eligible")
     else:
         id_map = {}
         for tid in seg_to_target:

@@ -113,11 +113,16 @@ def cloud_arrays(cloud) -> dict:
 
 
 def label_trees(arrays: dict, tree_points: dict, radius: float) -> np.ndarray:
-    """Tree id per point: the nearest tree whose TLS points lie within ``radius`` (0 = none)."""
+    """Tree id per point: the nearest tree whose TLS points lie within ``radius`` (0 = none).
+
+    Ground and noise returns (LAS classes 2, 7, 18) are never a tree's, as in
+    :func:`vlsforest.extract.extract_reference`.
+    """
     from vlsforest.extract import extract_reference
     from vlsforest.io.las import PointCloud
 
-    return extract_reference(tree_points, PointCloud(arrays["xyz"], {}), radius)
+    return extract_reference(tree_points, PointCloud(arrays["xyz"], {"classification": arrays["classification"]}),
+                             radius)
 
 
 def _pulse_key(a: dict, idx: np.ndarray) -> np.ndarray:
