@@ -114,6 +114,64 @@ def test_max_returns_and_threshold():
     assert (r["amplitude"] >= 0.537 * 5.0).all()
 
 
+def test_waveform_matches_a_hit_by_hit_reference():
+    """Energies summed per bin before the pulse shape is added give the waveform of adding one
+    shape per hit: same returns, amplitudes to rounding, on pulses whose hits share bins."""
+    from vlsforest.sim.waveform import pulse_shape
+
+    rng = np.random.default_rng(11)
+    bin_m = C_M_PER_NS * 0.25
+    shape = pulse_shape(4.0, 0.25)
+    ptr, ranges, energy = [0], [], []
+    for k in range(600):
+        n = int(rng.integers(1, 25))
+        base = 500.0 + rng.uniform(0, 1)
+        # every third pulse has all its hits inside one bin (open ground; the kernel's shortcut),
+        # the others mix a ground-like cluster with crown hits spread over a few metres
+        r = base + np.where((k % 3 == 0) | (rng.random(n) < 0.5), rng.uniform(0, 0.9 * bin_m, n),
+                            rng.uniform(0, 4.0, n))
+        ranges.extend(r)
+        energy.extend(rng.uniform(0.5, 20.0, n))
+        ptr.append(len(ranges))
+    ptr, ranges, energy = np.array(ptr), np.array(ranges), np.array(energy)
+    got = detect_returns(ptr, ranges, energy, window_size_ns=1.0)
+    want_amp, want_range = [], []
+    for p in range(len(ptr) - 1):
+        r, e = ranges[ptr[p]:ptr[p + 1]], energy[ptr[p]:ptr[p + 1]]
+        lo = r.min()
+        nb = int((r.max() - lo) / bin_m) + len(shape)
+        wave = np.zeros(nb)
+        for d, en in zip(r, e):  # one pulse shape per hit
+            b = int((d - lo) / bin_m)
+            k = min(len(shape), nb - b)
+            wave[b:b + k] += shape[:k] * en
+        win = 4  # 1.0 ns / 0.25 ns
+        for i in range(nb):
+            v = wave[i]
+            if v > 0 and (wave[max(0, i - win):i] < v).all() and (wave[i + 1:i + win + 1] <= v).all():
+                want_amp.append(v)
+                want_range.append(lo + (i - int(np.argmax(shape))) * bin_m)
+    assert len(got["amplitude"]) == len(want_amp) > 600
+    assert np.allclose(got["amplitude"], want_amp, rtol=1e-12)
+    assert np.allclose(got["range"], want_range, rtol=0, atol=1e-9)
+
+
+def test_one_bin_pulse_is_the_pulse_shape_times_its_energy():
+    from vlsforest.sim.waveform import _is_unimodal, pulse_shape
+
+    shape = pulse_shape(4.0, 0.25)
+    k = int(np.argmax(shape))
+    assert _is_unimodal(shape, k) and not _is_unimodal(np.array([0.0, 1.0, 1.0, 0.5]), 1)
+    ranges = np.array([60.031, 60.0, 60.05, 60.02])  # all within one 0.075 m bin
+    energy = np.array([3.0, 1.5, 2.0, 0.25])
+    r = detect_returns(np.array([0, 4]), ranges, energy, window_size_ns=1.0)
+    assert r["n_returns"].tolist() == [1] and r["range"][0] == 60.0 and r["hit"][0] == 1
+    assert r["amplitude"][0] == pytest.approx(shape[k] * energy.sum(), rel=1e-15)
+    # the threshold applies to that peak; a zero window makes every bin of the waveform a peak
+    assert detect_returns(np.array([0, 4]), ranges, energy, min_energy=shape[k] * 6.8)["n_returns"][0] == 0
+    assert detect_returns(np.array([0, 4]), ranges, energy, window_size_ns=0.0)["n_returns"][0] == len(shape) - 1
+
+
 def test_nearest_hit_gives_object():
     r = detect_returns(np.array([0, 3]), np.array([500.0, 500.02, 507.0]), np.ones(3) * 10)
     assert r["n_returns"][0] == 2

@@ -148,18 +148,54 @@ def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
 
 @numba.njit(cache=True, inline="always")
 def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_returns,
-                helios_rule, dedupe, wave, out_range, out_amp, out_sub):
-    """Detect the returns of one pulse; returns the number written to the out arrays."""
+                helios_rule, dedupe, wave, out_range, out_amp, out_sub, unimodal):
+    """Detect the returns of one pulse; returns the number written to the out arrays.
+
+    ``unimodal``: the pulse shape rises strictly up to ``peak_index`` and falls strictly after
+    it (:func:`_is_unimodal`); then a pulse whose hits all lie in its first bin (most pulses:
+    open ground) has the waveform ``E × shape``, whose only peak (physical rule, window > 0)
+    is ``E × shape[peak_index]`` at the nearest range: that is written without building the
+    waveform (the same numbers, bit for bit, as the general path).
+    """
     n = ranges.shape[0]
     if n == 0:
         return 0
     d_min = ranges[order[0]]
     d_max = ranges[order[n - 1]]
     npulse = shape.shape[0]
+    if unimodal and not helios_rule and win > 0 and int((d_max - d_min) / bin_m) == 0:
+        e_sum = 0.0
+        last = -1.0
+        for q in range(n):
+            s = order[q]
+            d = ranges[s]
+            if dedupe and d == last:
+                continue
+            last = d
+            e_sum += energy[s]
+        if e_sum >= 1e-200:  # far from underflow, where E × shape could lose its strict slopes
+            v = shape[peak_index] * e_sum
+            if v < eps or v <= 0.0:
+                return 0
+            d_ret = d_min + (peak_index - peak_index) * bin_m
+            best = 0
+            bestd = 1e300
+            for q in range(n):
+                dd = abs(ranges[q] - d_ret)
+                if dd < bestd:
+                    bestd = dd
+                    best = q
+            out_range[0] = d_ret
+            out_amp[0] = v
+            out_sub[0] = best
+            return 1
     nbins = int((d_max - d_min) / bin_m) + npulse
-    if nbins > wave.shape[0]:
-        nbins = wave.shape[0]
-    for i in range(nbins):
+    if 2 * nbins > wave.shape[0]:
+        nbins = wave.shape[0] // 2
+    # the hits' energies are first summed per bin (the second half of ``wave``), then each
+    # occupied bin adds one pulse shape: most pulses put all their sub-ray hits in one or two bins
+    ebin = wave[nbins:2 * nbins]
+    for i in range(2 * nbins):
         wave[i] = 0.0
     last = -1.0
     for q in range(n):
@@ -169,9 +205,12 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
             continue  # HELIOS++ v1.0: a bit-identical range key is ignored (quirk 5)
         last = d
         b = int((d - d_min) / bin_m)
-        e = energy[s]
-        lim = min(npulse, nbins - b)  # the pulse shape, clipped at the end of the waveform
-        if lim > 0:
+        if b < nbins:
+            ebin[b] += energy[s]
+    for b in range(nbins):
+        e = ebin[b]
+        if e != 0.0:
+            lim = min(npulse, nbins - b)  # the pulse shape, clipped at the end of the waveform
             w = wave[b:b + lim]  # a view: the compiler vectorises the loop
             for i in range(lim):
                 w[i] += shape[i] * e
@@ -238,6 +277,19 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
     return found
 
 
+@numba.njit(cache=True)
+def _is_unimodal(shape, peak_index):
+    """Whether the sampled pulse shape rises strictly to ``peak_index`` and falls strictly after."""
+    if peak_index <= 0:
+        return False
+    for i in range(1, shape.shape[0]):
+        if i <= peak_index and not shape[i] > shape[i - 1]:
+            return False
+        if i > peak_index and not shape[i] < shape[i - 1]:
+            return False
+    return True
+
+
 @numba.njit(cache=True, inline="always")
 def _stable_order(x, buf):
     """Stable ascending order of a short array (insertion sort into ``buf``)."""
@@ -256,6 +308,7 @@ def _stable_order(x, buf):
 @numba.njit(cache=True)
 def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_returns,
                 helios_rule, dedupe, max_per_pulse):
+    unimodal = _is_unimodal(shape, peak_index)
     m = ptr.shape[0] - 1
     cap = m * max_per_pulse
     r_pulse = np.empty(cap, np.int64)
@@ -272,7 +325,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
             span = ranges[a:b].max() - ranges[a:b].min()
             if span > maxspan:
                 maxspan = span
-    wave = np.empty(int(maxspan / bin_m) + shape.shape[0] + 2, np.float64)
+    wave = np.empty(2 * (int(maxspan / bin_m) + shape.shape[0] + 2), np.float64)  # waveform + energy per bin
     order_buf = np.empty(1024, np.int64)
     o_range = np.empty(max_per_pulse, np.float64)
     o_amp = np.empty(max_per_pulse, np.float64)
@@ -285,7 +338,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
         rr = ranges[a:b]
         order = _stable_order(rr, order_buf) if b - a <= 1024 else np.argsort(rr, kind="mergesort")
         f = _detect_one(rr, energy[a:b], order, shape, peak_index, bin_m, win, eps, max_returns,
-                        helios_rule, dedupe, wave, o_range, o_amp, o_sub)
+                        helios_rule, dedupe, wave, o_range, o_amp, o_sub, unimodal)
         nret[p] = f
         for q in range(f):
             r_pulse[k] = p
@@ -406,6 +459,7 @@ def detect_traced(t, part, cos_inc, live, n_subrays, n_pulses, range_min, frac, 
 @numba.njit(cache=True)
 def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, shin, scale, r0, m2, alpha,
                    shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe, max_per_pulse):
+    unimodal = _is_unimodal(shape, peak_index)
     nl = live.shape[0]
     cap = 2 * nl + max_per_pulse
     r_pulse = np.empty(cap, np.int64)
@@ -419,7 +473,7 @@ def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, s
     en = np.empty(ns, np.float64)
     ray = np.empty(ns, np.int64)
     order_buf = np.empty(1024, np.int64)
-    wave = np.empty(shape.shape[0] + 64, np.float64)
+    wave = np.empty(2 * (shape.shape[0] + 64), np.float64)
     o_range = np.empty(max_per_pulse, np.float64)
     o_amp = np.empty(max_per_pulse, np.float64)
     o_sub = np.empty(max_per_pulse, np.int64)
@@ -443,13 +497,13 @@ def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, s
                 hi = max(hi, d)
         if n == 0:
             continue
-        need = int((hi - lo) / bin_m) + shape.shape[0] + 2
+        need = 2 * (int((hi - lo) / bin_m) + shape.shape[0] + 2)  # waveform + energy per bin
         if need > wave.shape[0]:
             wave = np.empty(2 * need, np.float64)
         r = rr[:n]
         order = _stable_order(r, order_buf) if n <= 1024 else np.argsort(r, kind="mergesort")
         f = _detect_one(r, en[:n], order, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
-                        wave, o_range, o_amp, o_sub)
+                        wave, o_range, o_amp, o_sub, unimodal)
         if f == 0:
             continue
         p = live[j]
