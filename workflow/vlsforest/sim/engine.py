@@ -39,8 +39,8 @@ import numpy as np
 
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.sim.beam import cone_meets_box, subray_directions, subray_pattern, subray_rays32
-from vlsforest.sim.waveform import (atmospheric_alpha, detect_returns, detect_traced, detection_constants,
-                                    energy_constants, hit_energy)
+from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
+                                    detection_constants, energy_constants, hit_energy)
 
 _MODES = {
     "physical": dict(peak_rule="physical", ring_scale="helios", two_way_time=False, dedupe_ranges=False,
@@ -156,6 +156,9 @@ class _Job:
         # without stored hits and with returns on the beam axis, detection runs fused with the
         # hit collection (detect_traced) instead of building the hit arrays
         self.fused = not keep_hits and self.opts.return_position == "axis"
+        # and for pure Embree scenes without face labels straight from Embree's answer
+        self.raw_embree = (self.fused and bool(getattr(scene, "uses_embree", False))
+                           and not getattr(scene, "grids", ()) and not self.labels)
         self.tan_off = float(np.tan(self.max_offset))
         self.range_min = float(sc.range_min_m)
         self.energy_const = energy_constants(
@@ -242,11 +245,18 @@ def _trace_fused(job: _Job, batch, rng):
     nl = len(batch)
     if nl == 0:
         return _empty_block(job)[0], np.zeros(0, np.int16)
+    pat = job.pattern
+    live = np.arange(nl, dtype=np.int64)
+    consts = (job.pattern.frac, job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
+    if job.raw_embree:  # Embree's answer read in place: no range / part / |cos| arrays
+        o32, d32 = subray_rays32(batch.origin, batch.direction, batch.scan_dir, pat, job.scene.shift)
+        tfar, geom, ng, parts = job.scene.cast_embree(o32, d32)
+        p, ranges, amp, ray, num, nof, n_ret = detect_embree(tfar, geom, ng, d32, parts, live, pat.n, nl,
+                                                             job.range_min, *consts)
+        return _assemble(job, batch.georeferenced(), p, ranges, amp, parts[geom[ray]], None, num, nof, rng), n_ret
     traced = _cast(job, batch.origin, batch.direction, batch.scan_dir)
     t, part, cos_inc = traced[:3]
-    p, ranges, amp, ray, num, nof, n_ret = detect_traced(
-        t, part, cos_inc, np.arange(nl, dtype=np.int64), job.pattern.n, nl, job.range_min, job.pattern.frac,
-        job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
+    p, ranges, amp, ray, num, nof, n_ret = detect_traced(t, part, cos_inc, live, pat.n, nl, job.range_min, *consts)
     label = traced[3][ray] if job.labels else None
     return _assemble(job, batch.georeferenced(), p, ranges, amp, part[ray], label, num, nof, rng), n_ret
 

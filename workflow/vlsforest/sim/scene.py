@@ -42,8 +42,9 @@ import numba
 import numpy as np
 import yaml
 
-from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.sim._voxelgrid import VoxelGrid
+from vlsforest.sim.waveform import hit_cos32
 
 _PART_KEYS = {
     "plane": {"z", "extent"},
@@ -476,6 +477,26 @@ class Scene:
             return t, part, cos_inc, label
         return t, part, cos_inc
 
+    def cast_embree(self, o32, d32):
+        """Embree's raw answer for float32 rays in its frame, for scenes without voxel grids.
+
+        Returns
+        -------
+        tfar : ndarray of float32
+            Hit distance (inf or undefined where ``geom`` < 0).
+        geom : ndarray of int32
+            Embree geometry id (−1: no hit).
+        ng : ndarray of float32, shape (n, 3)
+            Geometric normal of the hit triangle.
+        parts : ndarray of int32
+            Scene part (index into :attr:`parts`) of each Embree geometry.
+        """
+        self.prepare()
+        if self.grids:
+            raise VlsforestError("cast_embree: the scene has voxel grids; use trace_local")
+        res = self._embree.run(o32, d32, output=1)
+        return res["tfar"], res["geomID"], res["Ng"], self._embree_parts
+
     def _trace_grids(self, o, d, t, part, cos_inc, label):
         """Update nearest hits (in place) with the voxel grids."""
         for g in self.grids:
@@ -510,10 +531,7 @@ def _embree_hits(tfar, gid, ng, d, parts, t, part, cos_inc):
         if g >= 0:
             t[i] = np.float64(tfar[i])
             part[i] = parts[g]
-            nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]
-            nn = np.sqrt(nx * nx + ny * ny + nz * nz)
-            if nn > 0:
-                cos_inc[i] = abs(nx * d[i, 0] + ny * d[i, 1] + nz * d[i, 2]) / nn
+            cos_inc[i] = hit_cos32(ng, d, i)
 
 
 def _load_yaml(path: Path, what: str):

@@ -452,13 +452,59 @@ def detect_traced(t, part, cos_inc, live, n_subrays, n_pulses, range_min, frac, 
         the sub-ray hit nearest in range, into ``t``), ``return_number``,
         ``number_of_returns``; and ``n_returns`` per pulse (length ``n_pulses``).
     """
-    return _detect_traced(t, part, cos_inc, live, int(n_subrays), int(n_pulses), float(range_min), frac, refl_pct,
-                          spec, shin, *energy_const, *detection_const)
+    z32, z3 = np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+    return _detect_traced(False, t, part, cos_inc, z32, np.zeros(0, np.int32), z3, z3, np.zeros(0, np.int32), live,
+                          int(n_subrays), int(n_pulses), float(range_min), frac, refl_pct, spec, shin, *energy_const,
+                          *detection_const)
+
+
+def detect_embree(tfar, geom, ng, d32, parts, live, n_subrays, n_pulses, range_min, frac, refl_pct, spec, shin,
+                  energy_const, detection_const):
+    """:func:`detect_traced` straight from Embree's answer (no voxel grids, no face labels).
+
+    Reads the hit range, geometry and geometric normal of each sub-ray where Embree left them
+    instead of first copying them into range / part / |cos| arrays; the results are identical.
+
+    Parameters
+    ----------
+    tfar : ndarray of float32
+        Embree's hit distance per sub-ray (pulse-major).
+    geom : ndarray of int32
+        Embree's geometry id per sub-ray (−1: no hit).
+    ng : ndarray of float32, shape (n, 3)
+        Embree's geometric normal per sub-ray.
+    d32 : ndarray of float32, shape (n, 3)
+        The sub-ray directions cast.
+    parts : ndarray of int32
+        Scene part of each Embree geometry.
+    live, n_subrays, n_pulses, range_min, frac, refl_pct, spec, shin, energy_const, detection_const
+        As for :func:`detect_traced`.
+
+    Returns
+    -------
+    tuple of ndarray
+        As :func:`detect_traced`.
+    """
+    z64, z32 = np.zeros(0), np.zeros(0, np.int32)
+    return _detect_traced(True, z64, z32, z64, tfar, geom, ng, d32, parts, live, int(n_subrays), int(n_pulses),
+                          float(range_min), frac, refl_pct, spec, shin, *energy_const, *detection_const)
+
+
+@numba.njit(cache=True, inline="always")
+def hit_cos32(ng, d, i):
+    """|cos| of the incidence angle of sub-ray ``i`` from Embree's geometric normal, in float32
+    arithmetic (0 for a degenerate normal)."""
+    nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn > 0:
+        return np.float64(abs(nx * d[i, 0] + ny * d[i, 1] + nz * d[i, 2]) / nn)
+    return 0.0
 
 
 @numba.njit(cache=True)
-def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, shin, scale, r0, m2, alpha,
-                   shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe, max_per_pulse):
+def _detect_traced(raw, t, part, cos_inc, tfar, geom, ng, d32, parts, live, ns, m, range_min, frac, refl, spec,
+                   shin, scale, r0, m2, alpha, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
+                   max_per_pulse):
     unimodal = _is_unimodal(shape, peak_index)
     nl = live.shape[0]
     cap = 2 * nl + max_per_pulse
@@ -485,10 +531,21 @@ def _detect_traced(t, part, cos_inc, live, ns, m, range_min, frac, refl, spec, s
         base = j * ns
         for s in range(ns):
             i = base + s
-            d = t[i]
+            g = 0
+            if raw:  # Embree's answer as it is
+                g = geom[i]
+                if g < 0:
+                    continue
+                d = np.float64(tfar[i])
+            else:
+                d = t[i]
             if d < np.inf and d >= range_min:
-                q = part[i]
-                c = np.float64(np.float32(cos_inc[i]))  # |cos| is kept as float32 with the hits
+                if raw:
+                    q = parts[g]
+                    c = np.float64(np.float32(hit_cos32(ng, d32, i)))
+                else:
+                    q = part[i]
+                    c = np.float64(np.float32(cos_inc[i]))  # |cos| is kept as float32 with the hits
                 rr[n] = d
                 en[n] = _subray_hit_energy(d, frac[s], c, refl[q], spec[q], shin[q], scale, r0, m2, alpha)
                 ray[n] = i
