@@ -147,27 +147,31 @@ def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
 
 
 @numba.njit(cache=True, inline="always")
-def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_returns,
+def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, max_returns,
                 helios_rule, dedupe, wave, out_range, out_amp, out_sub, unimodal):
     """Detect the returns of one pulse; returns the number written to the out arrays.
 
+    The hits' energies are summed per waveform bin in the order given (sorted by range only
+    when duplicate ranges are dropped; ``order_buf`` is scratch space for that order).
     ``unimodal``: the pulse shape rises strictly up to ``peak_index`` and falls strictly after
     it (:func:`_is_unimodal`); then a pulse whose hits all lie in its first bin (most pulses:
     open ground) has the waveform ``E × shape``, whose only peak (physical rule, window > 0)
     is ``E × shape[peak_index]`` at the nearest range: that is written without building the
-    waveform (the same numbers, bit for bit, as the general path).
+    waveform.
     """
     n = ranges.shape[0]
     if n == 0:
         return 0
-    d_min = ranges[order[0]]
-    d_max = ranges[order[n - 1]]
+    d_min = ranges.min()
+    d_max = ranges.max()
     npulse = shape.shape[0]
+    # hits are taken in the order given; only dropping duplicate ranges needs them sorted
+    order = _range_order(ranges, order_buf) if dedupe else order_buf[:0]
     if unimodal and not helios_rule and win > 0 and int((d_max - d_min) / bin_m) == 0:
         e_sum = 0.0
         last = -1.0
         for q in range(n):
-            s = order[q]
+            s = order[q] if dedupe else q
             d = ranges[s]
             if dedupe and d == last:
                 continue
@@ -177,15 +181,14 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
             v = shape[peak_index] * e_sum
             if v < eps or v <= 0.0:
                 return 0
-            d_ret = d_min + (peak_index - peak_index) * bin_m
             best = 0
             bestd = 1e300
             for q in range(n):
-                dd = abs(ranges[q] - d_ret)
+                dd = abs(ranges[q] - d_min)
                 if dd < bestd:
                     bestd = dd
                     best = q
-            out_range[0] = d_ret
+            out_range[0] = d_min
             out_amp[0] = v
             out_sub[0] = best
             return 1
@@ -199,7 +202,7 @@ def _detect_one(ranges, energy, order, shape, peak_index, bin_m, win, eps, max_r
         wave[i] = 0.0
     last = -1.0
     for q in range(n):
-        s = order[q]
+        s = order[q] if dedupe else q
         d = ranges[s]
         if dedupe and d == last:
             continue  # HELIOS++ v1.0: a bit-identical range key is ignored (quirk 5)
@@ -291,6 +294,14 @@ def _is_unimodal(shape, peak_index):
 
 
 @numba.njit(cache=True, inline="always")
+def _range_order(x, buf):
+    """Stable ascending order of ``x``: insertion sort into ``buf`` when it fits, else merge sort."""
+    if x.shape[0] <= buf.shape[0]:
+        return _stable_order(x, buf)
+    return np.argsort(x, kind="mergesort")
+
+
+@numba.njit(cache=True, inline="always")
 def _stable_order(x, buf):
     """Stable ascending order of a short array (insertion sort into ``buf``)."""
     n = x.shape[0]
@@ -336,8 +347,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
         if b == a:
             continue
         rr = ranges[a:b]
-        order = _stable_order(rr, order_buf) if b - a <= 1024 else np.argsort(rr, kind="mergesort")
-        f = _detect_one(rr, energy[a:b], order, shape, peak_index, bin_m, win, eps, max_returns,
+        f = _detect_one(rr, energy[a:b], order_buf, shape, peak_index, bin_m, win, eps, max_returns,
                         helios_rule, dedupe, wave, o_range, o_amp, o_sub, unimodal)
         nret[p] = f
         for q in range(f):
@@ -558,8 +568,7 @@ def _detect_traced(raw, t, part, cos_inc, tfar, geom, ng, d32, parts, live, ns, 
         if need > wave.shape[0]:
             wave = np.empty(2 * need, np.float64)
         r = rr[:n]
-        order = _stable_order(r, order_buf) if n <= 1024 else np.argsort(r, kind="mergesort")
-        f = _detect_one(r, en[:n], order, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
+        f = _detect_one(r, en[:n], order_buf, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
                         wave, o_range, o_amp, o_sub, unimodal)
         if f == 0:
             continue
