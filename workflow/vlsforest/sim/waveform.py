@@ -181,16 +181,9 @@ def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, m
             v = shape[peak_index] * e_sum
             if v < eps or v <= 0.0:
                 return 0
-            best = 0
-            bestd = 1e300
-            for q in range(n):
-                dd = abs(ranges[q] - d_min)
-                if dd < bestd:
-                    bestd = dd
-                    best = q
             out_range[0] = d_min
             out_amp[0] = v
-            out_sub[0] = best
+            out_sub[0] = _nearest_hit(ranges, d_min)
             return 1
     nbins = int((d_max - d_min) / bin_m) + npulse
     if 2 * nbins > wave.shape[0]:
@@ -261,23 +254,28 @@ def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, m
         if not ok:
             continue
         d_ret = d_min + (i - peak_index) * bin_m
-        # the sub-ray hit nearest in range gives the object id
-        best = 0
-        bestd = 1e300
-        for q in range(n):
-            dd = abs(ranges[q] - d_ret)
-            if dd < bestd:
-                bestd = dd
-                best = q
         out_range[found] = d_ret
         out_amp[found] = v
-        out_sub[found] = best
+        out_sub[found] = _nearest_hit(ranges, d_ret)  # its object id is the return's
         found += 1
         if max_returns > 0 and found >= max_returns:
             break
         if found >= out_range.shape[0]:
             break
     return found
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_hit(ranges, d):
+    """Index of the first hit nearest in range to ``d``."""
+    best = 0
+    bestd = 1e300
+    for q in range(ranges.shape[0]):
+        dd = abs(ranges[q] - d)
+        if dd < bestd:
+            bestd = dd
+            best = q
+    return best
 
 
 @numba.njit(cache=True)
