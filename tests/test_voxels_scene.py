@@ -440,6 +440,7 @@ def test_extract_reference_cli_drops_ground_and_rejects_bad_classes(tmp_path, ca
     a = read_las(tmp_path / "a.laz")
     assert np.allclose(a.xyz, [[0.1, 0, 2.0]], atol=1e-3) and a.attrs["tree_id"].tolist() == [301]
     assert cli_main([*base, "--exclude-classes", "", "-o", str(tmp_path / "b.laz")]) == 0
+    assert "every class kept" in capsys.readouterr().out
     assert len(read_las(tmp_path / "b.laz")) == 4
     assert cli_main([*base, "--exclude-classes", "2,ground", "-o", str(tmp_path / "c.laz")]) != 0
     assert "not a comma-separated list" in capsys.readouterr().err

@@ -82,11 +82,13 @@ def run(args) -> int:
             pts[tid] = read_las(f).xyz
         excl = _classes(args.exclude_classes)
         lab = extract_reference(pts, cloud, args.radius, exclude_classes=excl)
-        if "classification" in cloud.attrs and excl:
+        if "classification" not in cloud.attrs:
+            print("extract reference: no classification in the recording, every point eligible")
+        elif excl:
             n_out = int(np.isin(cloud.attrs["classification"], excl).sum())
             print(f"extract reference: {n_out} points of classes {','.join(map(str, excl))} left out")
         else:
-            print("extract reference: no classification in the recording, every point eligible")
+            print("extract reference: every class kept (--exclude-classes '')")
     else:
         id_map = {}
         for tid in seg_to_target:

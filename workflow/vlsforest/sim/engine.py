@@ -247,7 +247,7 @@ def _trace_fused(job: _Job, batch, rng):
         return _empty_block(job)[0], np.zeros(0, np.int16)
     pat = job.pattern
     live = np.arange(nl, dtype=np.int64)
-    consts = (job.pattern.frac, job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
+    consts = (pat.frac, job.refl_pct, job.spec, job.shin, job.energy_const, job.detection_const)
     if job.raw_embree:  # Embree's answer read in place: no range / part / |cos| arrays
         o32, d32 = subray_rays32(batch.origin, batch.direction, batch.scan_dir, pat, job.scene.shift)
         tfar, geom, ng, parts = job.scene.cast_embree(o32, d32)

@@ -550,7 +550,7 @@ def _detect_traced(raw, t, part, cos_inc, tfar, geom, ng, d32, parts, live, ns, 
             if d < np.inf and d >= range_min:
                 if raw:
                     q = parts[g]
-                    c = np.float64(np.float32(hit_cos32(ng, d32, i)))
+                    c = hit_cos32(ng, d32, i)  # float32 arithmetic, as _embree_hits stores it
                 else:
                     q = part[i]
                     c = np.float64(np.float32(cos_inc[i]))  # |cos| is kept as float32 with the hits
