@@ -196,6 +196,27 @@ def test_hit_energy_matches_subray_energy():
     assert np.allclose(a, b, rtol=1e-12)
 
 
+def test_beam_weight_without_exp_agrees_with_exp():
+    """The per-hit Gaussian weight exp(-a) · Taylor(exp(y)) (y = a R0²/(R² + R0²) ≤ 0.03) agrees
+    with exp(-a R²/(R² + R0²)) to a few ulp, on both sides of the switch to exp and at R0 = 0."""
+    from vlsforest.sim.waveform import _beam_weight, _weight_consts
+
+    frac = np.unique(np.concatenate([subray_pattern(q, 0.5).frac for q in (2, 3, 4, 5)]))
+    r = np.geomspace(0.05, 5000.0, 4001)
+    n_poly = 0
+    for m2 in (1.0, 1.2, 1.5):
+        a, ea = _weight_consts(frac, m2)
+        assert np.allclose(a, 2 * (frac * m2) ** 2, rtol=1e-15) and np.allclose(ea, np.exp(-a), rtol=1e-15)
+        for r0 in (0.0, 1.5, 3.0, 100.0):
+            for k in range(len(frac)):
+                got = np.array([_beam_weight(x, a[k], ea[k], r0) for x in r])
+                want = np.exp(-2 * (frac[k] * m2) ** 2 * r ** 2 / (r ** 2 + r0 ** 2))
+                assert np.abs(got / want - 1).max() < 1e-15, (m2, r0, k)
+                n_poly += int(np.sum(a[k] * r0 ** 2 / (r ** 2 + r0 ** 2) <= 0.03))
+    assert n_poly > 10000  # the polynomial branch was exercised
+    assert _beam_weight(70.0, 0.0, 1.0, 3.0) == 1.0  # the central sub-ray
+
+
 def _reference_physical(ranges, energy, win, bin_m=C_M_PER_NS * 0.25):
     """Plain-Python statement of the physical peak rule (for comparison)."""
     shape = pulse_shape(4.0, 0.25)

@@ -212,6 +212,8 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
             rec[name] = arr
     rec["bit_fields"] = bits
     rec["classification_flags"] = flags
-    las = laspy.LasData(header, points=laspy.PackedPointRecord(rec, header.point_format))
-    las.write(path)
+    # straight to the writer: a LasData would compute the header's bounds and counts a second time
+    with open(path, "wb+") as out, laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz",
+                                                    closefd=False) as writer:
+        writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
     return path

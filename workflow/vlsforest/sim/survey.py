@@ -616,6 +616,58 @@ def _may_meet(sl, k, seg, r, p0, vel, rot, prf, lo, hi, tan_off):
 
 
 @numba.njit(cache=True)
+def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, lo, hi, tan_off):
+    """The across-track beam angles of one scan line that can pass :func:`_may_meet`.
+
+    Bounds, for every slot of line ``line`` of segment ``seg`` at once, the condition that
+    :func:`_may_meet` (and so the exact cone test) checks per slot: the beam must come within
+    the padded box's ball of the box centre. The origin moves during the line; the ball is
+    grown by that motion and the padding taken at the farthest origin, so the bound holds for
+    every slot of the line. The beam ``sin r · R₀ − cos r · R₂`` (``R`` the segment's attitude)
+    makes an angle ≤ α with the direction to the centre exactly when ``M cos(r − φ) ≥ cos α``.
+
+    Returns
+    -------
+    mode : int
+        0: no slot of the line can pass; 1: any may (origin near the box, or no bound);
+        2: only angles with ``|r − φ|`` (wrapped to ±π) ≤ ``beta``.
+    phi, beta : float
+    """
+    if freq > 0.0:
+        k_lo = max(0.0, np.floor(line * prf / freq) - 1.0)
+        k_hi = min(np.float64(n_k), np.ceil((line + 1.0) * prf / freq) + 1.0)
+    else:
+        k_lo, k_hi = 0.0, np.float64(n_k)
+    km = 0.5 * (k_lo + k_hi)
+    dt = km / prf
+    o0 = p0[seg, 0] + dt * vel[seg, 0]
+    o1 = p0[seg, 1] + dt * vel[seg, 1]
+    o2 = p0[seg, 2] + dt * vel[seg, 2]
+    speed = np.sqrt(vel[seg, 0] ** 2 + vel[seg, 1] ** 2 + vel[seg, 2] ** 2)
+    move = speed * (0.5 * (k_hi - k_lo) + 1.0) / prf * (1.0 + 1e-9) + 1e-9
+    h0, h1, h2 = 0.5 * (hi[0] - lo[0]), 0.5 * (hi[1] - lo[1]), 0.5 * (hi[2] - lo[2])
+    v0, v1, v2 = 0.5 * (lo[0] + hi[0]) - o0, 0.5 * (lo[1] + hi[1]) - o1, 0.5 * (lo[2] + hi[2]) - o2
+    dist = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    pad = tan_off * (dist + move + np.sqrt(h0 * h0 + h1 * h1 + h2 * h2)) + 1e-6
+    big_r = np.sqrt((h0 + pad) ** 2 + (h1 + pad) ** 2 + (h2 + pad) ** 2)
+    # _may_meet's own slack (for its float32 directions) at the farthest origin, then the motion
+    rho = big_r * (1.0 + 1e-9) + (dist + move + big_r) * 4e-6 + 1e-6
+    rho = rho * (1.0 + 1e-6) + move + 1e-6
+    if not (dist > rho) or not np.isfinite(dist):
+        return 1, 0.0, 0.0
+    cos_a = np.sqrt(1.0 - (rho / dist) ** 2)
+    a = (rot[0, 0, seg] * v0 + rot[1, 0, seg] * v1 + rot[2, 0, seg] * v2) / dist
+    b = -(rot[0, 2, seg] * v0 + rot[1, 2, seg] * v1 + rot[2, 2, seg] * v2) / dist
+    m = np.sqrt(a * a + b * b)
+    c = cos_a - 1e-6  # slack for rounding in the attitude and in the slots' float32 trigonometry
+    if m < c:
+        return 0, 0.0, 0.0
+    if c <= 0.0 or m <= 0.0:
+        return 1, 0.0, 0.0
+    return 2, np.arctan2(a, b), np.arccos(min(1.0, c / m)) + 1e-6
+
+
+@numba.njit(cache=True)
 def _pulses_toward(start, stop, offsets, t0, p0, vel, rot, kind, freq, prf, a, b, window, az_r, el_r, el_deg, finite,
                    lo, hi, tan_off):
     """:meth:`Survey.pulses_toward` without trajectory noise, slot by slot.
@@ -642,6 +694,7 @@ def _pulses_toward(start, stop, offsets, t0, p0, vel, rot, kind, freq, prf, a, b
         seg += 1
     ne = 0
     nl = 0
+    w_seg, w_line, w_mode, w_phi, w_beta = -1, -1.0, 1, 0.0, 0.0
     for sl in range(start, stop):
         while offsets[seg + 1] <= sl:
             seg += 1
@@ -674,6 +727,20 @@ def _pulses_toward(start, stop, offsets, t0, p0, vel, rot, kind, freq, prf, a, b
                 if not abs(angle) <= window:
                     continue
             r = np.radians(angle)
+            if finite and (seg != w_seg or line != w_line):
+                w_seg, w_line = seg, line
+                w_mode, w_phi, w_beta = _line_window(seg, line, offsets[seg + 1] - offsets[seg], p0, vel, rot, prf,
+                                                     freq, lo, hi, tan_off)
+            if finite and w_mode != 1:
+                off = r - w_phi
+                if off > np.pi:
+                    off -= 2.0 * np.pi
+                elif off < -np.pi:
+                    off += 2.0 * np.pi
+                if w_mode == 0 or abs(off) > w_beta:
+                    slot[ne] = sl  # emitted; the whole scan line's bound says its beam misses the box
+                    ne += 1
+                    continue
             if not finite or not _may_meet(sl, k, seg, r, p0, vel, rot, prf, lo, hi, tan_off):
                 slot[ne] = sl  # emitted, but its beam surely misses the box: no frame needed
                 ne += 1
