@@ -10,7 +10,7 @@ all matched stems.
 
 Usage::
 
-    python benchmarks/bench_segment.py [FOREST_DIR] [--plot P5] [--out DIR]
+    python benchmarks/bench_segment.py [FOREST_DIR] [--plot P5] [--out DIR] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -84,7 +84,13 @@ def main(argv=None) -> int:
     ap.add_argument("forest", nargs="?", default="/tmp/lead/default_forest3", type=Path)
     ap.add_argument("--plot", default="P5")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default: a temporary one)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a segmentation setting other than its default (repeatable), e.g. edge_power=2")
     args = ap.parse_args(argv)
+    settings = {}
+    for kv in args.set:
+        key, _, val = kv.partition("=")
+        settings[key] = json.loads(val)
     tls = args.forest / "plots" / args.plot / "tls"
     scans = sorted(tls.glob("scan_*.laz"), key=lambda p: int(p.stem.split("_")[1]))
     if not scans:
@@ -93,7 +99,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp) / "seg"
         t0 = time.perf_counter()
-        res = segment_files(scans, out, SegmentConfig())
+        res = segment_files(scans, out, SegmentConfig.from_dict(settings))
         total = time.perf_counter() - t0
         i = res.info
         print(f"plot {args.plot}: {len(scans)} scans, {i['n_points']} points, {i['n_voxels']} voxels, "
