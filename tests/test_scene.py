@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial import cKDTree
 
 from vlsforest.cli import main
 from vlsforest.errors import ConfigError, InputDataError
@@ -68,6 +69,75 @@ def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
     assert hit.mean() > 0.3 and {0, 1, 2} <= set(p2[hit].tolist())
     assert np.array_equal(np.isfinite(t1), hit) and (p1 == p2).all()
     assert np.abs(t1[hit] - t2[hit]).max() < 1e-4
+
+
+def test_planned_routing_weighs_embree_build_against_rays(monkeypatch):
+    """With the number of rays known, a lattice goes to Embree only when the rays repay its
+    build, never beyond EMBREE_VOXEL_MAX cubes; a re-plan rebuilds and traces the same hits."""
+    rng = np.random.default_rng(5)
+    ijk = np.unique(rng.integers(0, 10, size=(300, 3)), axis=0)
+    n = len(ijk)
+    sc = Scene(voxel_backend="auto")
+    sc.add_voxels(1, ijk, [0.0, 0.0, 0.0], 0.1)
+    assert sc._routing() == [True]                      # no plan: n <= EMBREE_VOXEL_LIMIT
+    lo, hi = sc.bounds()
+    o, d = _rays(3000, np.random.default_rng(6), lo, hi)
+    t_e, p_e, _ = sc.trace(o, d)
+    # break-even: rays · 0.16 µs · (0.25/0.1)^0.6 = 1.25 · 10 µs · n
+    even = 1.25 * 10e-6 * n / (0.16e-6 * 2.5 ** 0.6)
+    sc.plan_for_rays(0.9 * even)
+    assert sc._routing() == [False] and len(sc.grids) == 1
+    t_g, p_g, _ = sc.trace(o, d)
+    hit = np.isfinite(t_e)
+    assert hit.mean() > 0.3 and np.array_equal(np.isfinite(t_g), hit) and (p_g == p_e).all()
+    assert np.abs(t_g[hit] - t_e[hit]).max() < 1e-4
+    sc.plan_for_rays(1.1 * even)
+    assert sc._routing() == [True] and sc.grids == []
+    t_e2 = sc.trace(o, d)[0]
+    assert np.abs(t_e2[hit] - t_e[hit]).max() < 1e-6
+    monkeypatch.setattr(Scene, "EMBREE_VOXEL_MAX", n - 1)
+    sc.plan_for_rays(1e12)
+    assert sc._routing() == [False]
+    with pytest.raises(ConfigError, match="expected number of rays"):
+        sc.plan_for_rays(float("nan"))
+    fixed = Scene(voxel_backend="grid")
+    fixed.add_voxels(1, ijk, [0.0, 0.0, 0.0], 0.1)
+    fixed.plan_for_rays(1e12)
+    assert fixed._routing() == [False]
+
+
+def test_simulate_plans_the_routing_from_the_survey():
+    """The simulator estimates the survey's sub-rays and routes the voxels by them: a short
+    survey over many cubes keeps them in the grid, a long one sends them to Embree, where the
+    points are those of the grid (positions to float32 precision; a pulse grazing a cube edge
+    may resolve differently in the two)."""
+    from vlsforest.sim import simulate, survey_from_dict
+
+    rng = np.random.default_rng(7)
+    ijk = np.unique(np.c_[rng.integers(-20, 20, (60000, 2)), rng.integers(40, 60, 60000)], axis=0)
+
+    def run(length, backend="auto"):
+        sc = Scene(voxel_backend=backend)
+        sc.add_plane(1, 0.0, (-40, -40, 40, 40))
+        sc.add_voxels(2, ijk, [0.0137, 0.0291, 0.0053], 0.25)  # off the scan planes: few grazing rays
+        survey = survey_from_dict({
+            "scanner": "riegl_minivux1uav",
+            "platform": {"type": "linear", "speed_mps": 5.0,
+                         "legs": [{"start": [0.37, -length / 2, 60.0], "end": [0.37, length / 2, 60.0]}]}})
+        res = simulate(sc, survey, seed=1, workers=1)
+        saves = res.timings["n_rays"] * Scene._EMBREE_SAVES_S_PER_RAY
+        build = Scene._EMBREE_BUILD_MARGIN * Scene._EMBREE_BUILD_S_PER_CUBE * len(ijk)
+        return sc._routing(), saves > build, res
+
+    routing, pays, _ = run(2.0)
+    assert routing == [False] and not pays
+    routing, pays, res = run(30.0)
+    assert routing == [True] and pays
+    grid = run(30.0, "grid")[2]
+    a, b = res.points["xyz"], grid.points["xyz"]
+    assert len(a) > 100000 and abs(len(a) - len(b)) <= 1e-4 * len(b)
+    d, _ = cKDTree(b).query(a)
+    assert (d < 1e-3).mean() > 0.9999
 
 
 def test_vox_scaled_placement(tmp_path):

@@ -157,8 +157,7 @@ class _Job:
         # hit collection (detect_traced) instead of building the hit arrays
         self.fused = not keep_hits and self.opts.return_position == "axis"
         # and for pure Embree scenes without face labels straight from Embree's answer
-        self.raw_embree = (self.fused and bool(getattr(scene, "uses_embree", False))
-                           and not getattr(scene, "grids", ()) and not self.labels)
+        self.raw_embree = self._raw_embree()
         self.tan_off = float(np.tan(self.max_offset))
         self.range_min = float(sc.range_min_m)
         self.energy_const = energy_constants(
@@ -176,7 +175,33 @@ class _Job:
                 self.box_hi[:2] = np.minimum(self.box_hi[:2], region[2:])
 
 
+    def _raw_embree(self) -> bool:
+        scene = self.scene
+        routing = getattr(scene, "_routing", None)  # without building the grids
+        no_grids = all(routing()) if routing is not None else not getattr(scene, "grids", ())
+        return self.fused and bool(getattr(scene, "uses_embree", False)) and no_grids and not self.labels
+
+
 _JOB: _Job | None = None
+
+
+def _expected_rays(job: _Job, n_blocks: int, n_sample: int = 64) -> float:
+    """Sub-rays the job will trace, estimated from the pulses of up to ``n_sample`` evenly
+    spread blocks (the same beam-box test as the blocks themselves; deterministic)."""
+    survey = job.survey
+    if n_blocks <= 0 or survey.n_slots == 0:
+        return 0.0
+    blocks = np.unique(np.linspace(0, n_blocks - 1, min(n_sample, n_blocks)).round().astype(np.int64))
+    slots = traced = 0
+    for b in blocks:
+        start = int(b) * job.block_slots
+        stop = min(start + job.block_slots, survey.n_slots)
+        if job.fused and not job.keep_pulses:
+            traced += len(survey.pulses_toward(start, stop, job.box_lo, job.box_hi, job.tan_off)[2])
+        else:
+            traced += len(_live_rows(job, survey.pulses(start, stop)))
+        slots += stop - start
+    return traced / max(slots, 1) * survey.n_slots * job.pattern.n
 
 
 def _init_worker():
@@ -512,6 +537,10 @@ def _run_blocks(job: _Job, workers, progress, t0):
     global _JOB
     survey, scene = job.survey, job.scene
     n_blocks = -(-survey.n_slots // job.block_slots)
+    if hasattr(scene, "plan_for_rays"):
+        # voxel lattices to Embree or to the grid, whichever traces this survey sooner
+        scene.plan_for_rays(_expected_rays(job, n_blocks))
+        job.raw_embree = job._raw_embree()
     if hasattr(scene, "prepare"):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking
     workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
