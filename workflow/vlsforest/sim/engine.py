@@ -174,12 +174,10 @@ class _Job:
                 self.box_lo[:2] = np.maximum(self.box_lo[:2], region[:2])
                 self.box_hi[:2] = np.minimum(self.box_hi[:2], region[2:])
 
-
     def _raw_embree(self) -> bool:
         scene = self.scene
-        routing = getattr(scene, "_routing", None)  # without building the grids
-        no_grids = all(routing()) if routing is not None else not getattr(scene, "grids", ())
-        return self.fused and bool(getattr(scene, "uses_embree", False)) and no_grids and not self.labels
+        return (self.fused and bool(getattr(scene, "uses_embree", False))
+                and not getattr(scene, "has_grids", False) and not self.labels)
 
 
 _JOB: _Job | None = None
@@ -537,7 +535,7 @@ def _run_blocks(job: _Job, workers, progress, t0):
     global _JOB
     survey, scene = job.survey, job.scene
     n_blocks = -(-survey.n_slots // job.block_slots)
-    if hasattr(scene, "plan_for_rays"):
+    if getattr(scene, "needs_ray_estimate", False):
         # voxel lattices to Embree or to the grid, whichever traces this survey sooner
         scene.plan_for_rays(_expected_rays(job, n_blocks))
         job.raw_embree = job._raw_embree()

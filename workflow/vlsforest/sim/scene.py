@@ -485,6 +485,16 @@ class Scene:
         return t, part, cos_inc
 
     @property
+    def has_grids(self) -> bool:
+        """Whether any voxel set is traced in a voxel grid (from the routing; builds nothing)."""
+        return not all(self._routing())
+
+    @property
+    def needs_ray_estimate(self) -> bool:
+        """Whether :meth:`plan_for_rays` can change the routing (``auto`` with voxel sets)."""
+        return self.voxel_backend == "auto" and bool(self._voxelsets)
+
+    @property
     def uses_embree(self) -> bool:
         """Whether meshes (and planes, and small voxel sets) are traced with Embree."""
         return bool(self._meshes) or any(self._routing())

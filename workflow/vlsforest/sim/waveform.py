@@ -141,9 +141,9 @@ def _beam_weight(r, a, ea, r0):
     ``a`` and ``ea = exp(−a)`` (:func:`_weight_consts`).
 
     Written as ``exp(−a) · exp(y)`` with ``y = a R0²/(R² + R0²)``; beyond a few R0 (every
-    airborne hit) ``y ≤ 0.05`` and ``exp(y)`` is its Taylor polynomial to ``y¹⁰/10!``
-    (truncation below 3·10⁻²⁰): the result agrees with ``exp`` to a few units in the last
-    place, without one libm ``exp`` per hit (most of the energy's cost).
+    airborne hit) ``y ≤ 0.03`` and ``exp(y)`` is its Taylor polynomial to ``y⁸/8!``
+    (truncation below 10⁻¹⁹): the result agrees with ``exp`` to a few units in the last
+    place, without one libm ``exp`` per hit (most of the energy's cost); larger ``y`` use ``exp``.
     """
     rr = max(r, 1e-6)
     h = r0 * r0 / (rr * rr + r0 * r0)
