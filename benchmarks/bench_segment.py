@@ -107,7 +107,7 @@ def main(argv=None) -> int:
         print(f"time: read {i['t_read_s']:.1f} s, ground {i['t_ground_s']:.1f} s, seeds {i['t_seeds_s']:.1f} s, "
               f"growth {i['t_growth_s']:.1f} s, write {i['t_write_s']:.1f} s; total {total:.1f} s "
               f"(target ≤ {TARGET_S:.0f} s: {'OK' if total <= TARGET_S else 'TOO SLOW'})")
-        print(f"unreached voxels {i['unreached']}, attached {i['attached']}")
+        print(f"stem bridges {i['n_bridges']}, unreached voxels {i['unreached']}, attached {i['attached']}")
         _accuracy(args.forest, args.plot, scans, res)
     return 0
 

@@ -206,6 +206,52 @@ def test_unreached_crown_pieces_join_whole_and_chain():
     assert res.trees["height"].iloc[0] == pytest.approx(14.0, abs=0.1)
 
 
+def test_hidden_stem_is_bridged_to_its_own_crown():
+    """A stem seen only up to 3 m still gets its crown 7 m above; a neighbour that touches it does not."""
+    rng = np.random.default_rng(8)
+    ground = rng.uniform(-8, 8, size=(40000, 2))
+    ground = np.column_stack([ground, _terrain(ground[:, 0], ground[:, 1])])
+
+    def crown(cx, n):
+        v = rng.normal(size=(n, 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        return np.array([cx, 0.0, _terrain(cx, 0.0) + 12.0]) + v * (2.0 * rng.uniform(0.3, 1, n) ** (1 / 3))[:, None]
+
+    # tree A at x = 0: stem visible 0–3 m only (understorey hides the rest), crown 10–14 m;
+    # tree B at x = 3.5: stem visible 0–12 m, crown 10–14 m, overlapping A's by 0.5 m
+    stem_a = _stem(rng, 0.0, 0.0, 0.15, 0.0, 3.0, 3000)
+    stem_b = _stem(rng, 3.5, 0.0, 0.15, 0.0, 12.0, 9000)
+    crown_a, crown_b = crown(0.0, 15000), crown(3.5, 15000)
+    xyz = np.vstack([ground, stem_a, stem_b, crown_a, crown_b])
+    sl = np.cumsum([len(ground), len(stem_a), len(stem_b), len(crown_a), len(crown_b)])
+    cloud = PointCloud(xyz)
+
+    def own(res):
+        """Fractions labelled A of A's crown half away from B, and labelled B of B's own side."""
+        a, b = res.tree_id[sl[2]:sl[3]], res.tree_id[sl[3]:sl[4]]
+        return (a[crown_a[:, 0] < 0.5] == 1).mean(), (b[crown_b[:, 0] > 1.75] == 2).mean()
+
+    res = segment_cloud(cloud, SegmentConfig())
+    assert len(res.trees) == 2 and res.trees["x"].iloc[0] < res.trees["x"].iloc[1]
+    assert res.info["n_bridges"] >= 1
+    fa, fb = own(res)
+    assert fa > 0.98 and fb > 0.98
+    # A's path is longer by its hidden stem, so the boundary of the competition moves towards
+    # A (about x = 1.2 instead of the mid-plane 1.75), but most of A's crown is A's
+    assert 0.75 < (res.tree_id[sl[2]:sl[3]] == 1).mean() < 0.95
+    assert (res.tree_id[sl[0]:sl[1]] == 1).mean() > 0.95
+    # A's crown height comes back: the tree reaches its crown top, not its visible stem top
+    assert res.trees["height"].iloc[0] == pytest.approx(14.0, abs=0.3)
+    # without a bridge (switched off, or a gap longer than allowed) the neighbour takes the crown
+    for cfg in (SegmentConfig(stem_bridge=0), SegmentConfig(stem_bridge=5.0)):
+        off = segment_cloud(cloud, cfg)
+        assert (off.info["n_bridges"] == 0) == (cfg.stem_bridge == 0)  # 5 m: only gaps inside A's hollow crown
+        fa_off, fb_off = own(off)
+        assert fa_off < 0.05 and fb_off > 0.98
+    with pytest.raises(ConfigError, match="segment.stem_bridge"):
+        SegmentConfig(stem_bridge=-1)
+
+
 def test_deviation_filter_drops_noisy_pulses():
     rng = np.random.default_rng(4)
     xyz, lab = _scene(rng)
@@ -291,13 +337,13 @@ def test_quick_forest_against_truth(quick_forest, tmp_path, capsys):
     assert np.median(np.abs(dbh_err)) <= 0.02
     z_err = [trees["z"][f] - truth["z_ground"][t] for f, t in all_pairs]
     assert np.median(np.abs(z_err)) <= 0.05
-    # per-tree point IoU of the targets (measured 0.74–0.84 on this sparse 0.25° recording)
+    # per-tree point IoU of the targets (session 14: 0.79–0.97, mean 0.913; 0.907 without the stem bridges)
     ious = []
     for f, t in pairs:
         T = lab == targets["tree_id"][t]
         P = tid == trees["tree_id"][f]
         ious.append((T & P).sum() / (T | P).sum())
-    assert np.mean(ious) >= 0.75 and min(ious) >= 0.65
+    assert np.mean(ious) >= 0.88 and min(ious) >= 0.75
     # ground: LAS class 2 agrees with the truth's ground points
     g = seg.attrs["classification"] == 2
     assert (g & (lab == 0)).sum() / (lab == 0).sum() > 0.99

@@ -120,6 +120,16 @@ class SegmentConfig:
         Unreached voxels join the nearest reached voxel's tree within this distance, else 0.
     max_deviation : float
         Largest accepted pulse-shape deviation (only when the points carry one).
+    stem_bridge : float
+        Longest vertical gap in a stem that the growth bridges; 0 switches bridging off. Stems
+        hidden behind understorey or low crowns leave their tree's crown without a path to its
+        seed; without a bridge the crown goes to a neighbour whose crown touches it. Above each
+        stem's seed, the voxels within ``dbh / 2 + bridge_radius`` of the vertical through the
+        stem centre are chained in height order, and a gap longer than ``graph_radius`` but at
+        most ``stem_bridge`` becomes a graph edge as long as the straight line between the two
+        voxels (the hidden stem). It never shortens a path that already exists.
+    bridge_radius : float
+        Half-width beyond the stem radius of the vertical column searched for bridges.
     seed : int
         Random seed of the RANSAC circle fits.
     no_ground : bool
@@ -148,6 +158,8 @@ class SegmentConfig:
     edge_power: float = 1.0
     attach_dist: float = 1.0
     max_deviation: float = 50.0
+    stem_bridge: float = 20.0
+    bridge_radius: float = 0.3
     seed: int = 0
     no_ground: bool = False
 
@@ -169,6 +181,9 @@ class SegmentConfig:
             if f.name == "min_ground_fraction":
                 if not 0 <= v <= 1:
                     raise ConfigError(f"segment.{f.name}: must lie in [0, 1], got {v!r}")
+            elif f.name == "stem_bridge":
+                if v < 0:
+                    raise ConfigError(f"segment.{f.name}: must be >= 0 (0 switches it off), got {v!r}")
             elif v <= 0:
                 raise ConfigError(f"segment.{f.name}: must be > 0, got {v!r}")
         if self.slice_max <= self.slice_min:
@@ -733,12 +748,42 @@ def find_stems(xyz: np.ndarray, hag: np.ndarray, dtm: Dtm, config: SegmentConfig
 # competitive growth
 
 
-def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig):
-    """Tree label (1..len(seeds), 0 = none) per point of ``xyz`` by competitive Dijkstra."""
+def _stem_bridges(cen: np.ndarray, seed_vox: list[np.ndarray], stems: pd.DataFrame, cfg: SegmentConfig):
+    """Graph edges across the hidden parts of stems (see ``SegmentConfig.stem_bridge``).
+
+    Returns ``(rows, cols, lengths)``: voxel index pairs and their straight-line distances.
+    """
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if cfg.stem_bridge <= 0 or stems is None or len(stems) == 0 or len(cen) < 2:
+        return empty
+    plan = cKDTree(cen[:, :2])
+    rows, cols = [], []
+    for (sx, sy, dbh), vox in zip(stems[["x", "y", "dbh"]].to_numpy(float), seed_vox):
+        if len(vox) == 0:
+            continue
+        col = np.asarray(plan.query_ball_point([sx, sy], dbh / 2 + cfg.bridge_radius), np.int64)
+        # the column above the seed's top voxel, in height order
+        col = col[cen[col, 2] >= cen[vox, 2].max() - cfg.voxel]
+        col = col[np.argsort(cen[col, 2], kind="stable")]
+        dz = np.diff(cen[col, 2])
+        gap = (dz > cfg.graph_radius) & (dz <= cfg.stem_bridge)
+        rows.append(col[:-1][gap])
+        cols.append(col[1:][gap])
+    if not rows:
+        return empty
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    return rows, cols, np.linalg.norm(cen[rows] - cen[cols], axis=1)
+
+
+def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig, stems: pd.DataFrame | None = None):
+    """Tree label (1..len(seeds), 0 = none) per point of ``xyz`` by competitive Dijkstra.
+
+    ``stems`` (rows matching ``seeds``; columns ``x, y, dbh``) enables the stem bridges.
+    """
     n = len(xyz)
     labels = np.zeros(n, np.int64)
     if n == 0 or not seeds:
-        return labels, {"n_voxels": 0, "n_edges": 0, "unreached": 0, "attached": 0}
+        return labels, {"n_voxels": 0, "n_edges": 0, "n_bridges": 0, "unreached": 0, "attached": 0}
     uniq, inv = _voxel_keys(xyz, cfg.voxel, np.zeros(3))
     nv = len(uniq)
     cen = _centroids(xyz, inv, nv)
@@ -751,11 +796,16 @@ def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig):
     rows = np.repeat(np.arange(nv), ok.sum(axis=1))
     cols = nb[ok]
     w = np.maximum(dist[ok], 1e-6) ** cfg.edge_power
+    seed_vox = [np.unique(inv[idx]) for idx in seeds]
+    b_rows, b_cols, b_len = _stem_bridges(cen, seed_vox, stems, cfg)
+    if len(b_rows):
+        rows = np.concatenate([rows, b_rows])
+        cols = np.concatenate([cols, b_cols])
+        w = np.concatenate([w, b_len ** cfg.edge_power])
     graph = coo_matrix((w, (rows, cols)), shape=(nv, nv)).tocsr()
     # seed voxels: label of the seed (a voxel claimed by two seeds keeps the first)
     seed_label = np.zeros(nv, np.int64)
-    for t, idx in enumerate(seeds, start=1):
-        vox = np.unique(inv[idx])
+    for t, vox in enumerate(seed_vox, start=1):
         free = seed_label[vox] == 0
         seed_label[vox[free]] = t
     src = np.flatnonzero(seed_label)
@@ -795,7 +845,8 @@ def _grow(xyz: np.ndarray, seeds: list[np.ndarray], cfg: SegmentConfig):
             todo &= ~new
         attached = int((vlab[un] > 0).sum())
     labels = vlab[inv]
-    info = {"n_voxels": nv, "n_edges": int(len(w)), "unreached": n_unreached, "attached": attached}
+    info = {"n_voxels": nv, "n_edges": int(len(w)), "n_bridges": int(len(b_rows)), "unreached": n_unreached,
+            "attached": attached}
     return labels, info
 
 
@@ -879,7 +930,7 @@ def segment_cloud(cloud, config: SegmentConfig | None = None, source: str = "clo
     hag = vxyz[:, 2] - dtm.height_at(vxyz[:, 0], vxyz[:, 1])
     stems, seeds = find_stems(vxyz, hag, dtm, cfg)
     t2 = time.perf_counter()
-    labels, ginfo = _grow(vxyz, seeds, cfg)
+    labels, ginfo = _grow(vxyz, seeds, cfg, stems)
     t3 = time.perf_counter()
     tree_id = np.zeros(n, np.uint32)
     tree_id[veg] = labels
