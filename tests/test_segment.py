@@ -290,6 +290,8 @@ def test_cli_errors_are_one_clear_line(tmp_path, capsys):
         xyz_nan = xyz.copy()
         xyz_nan[5, 2] = np.nan
         segment_cloud(PointCloud(xyz_nan), source="nan.laz")
+    assert main(["segment", str(trees), "-o", str(tmp_path / "out"), "--stem-bridge", "-1"]) == 2
+    assert "segment.stem_bridge" in capsys.readouterr().err
     bad = tmp_path / "bad.laz"
     bad.write_bytes(b"not a las file at all")
     assert main(["segment", str(bad), "-o", str(tmp_path / "out")]) == 2

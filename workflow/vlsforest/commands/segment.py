@@ -23,7 +23,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="segment co-registered TLS scans into trees (ground, stems, competitive Dijkstra)",
         description=(
             "Classify ground, find stems in a slice above it (circle fits) and grow trees from "
-            "all stems at once by shortest paths over a voxel graph. Unreached voxels join the "
+            "all stems at once by shortest paths over a voxel graph (hidden stretches of stems "
+            "bridged). Unreached voxels join the "
             "nearest reached voxel's tree within --attach-dist, else tree id 0."
         ),
     )
@@ -34,6 +35,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help=f"longest graph edge in m (default {d.graph_radius})")
     p.add_argument("--attach-dist", type=float, default=d.attach_dist,
                    help=f"unreached points join a tree within this distance in m (default {d.attach_dist})")
+    p.add_argument("--stem-bridge", type=float, default=d.stem_bridge,
+                   help="longest hidden stretch of a stem in m that the growth bridges to its crown, "
+                        f"0 = off (default {d.stem_bridge:g})")
     p.add_argument("--ground-tol", type=float, default=d.ground_tol,
                    help=f"ground points lie at most this far above the terrain model (default {d.ground_tol})")
     p.add_argument("--max-deviation", type=float, default=d.max_deviation,
@@ -68,6 +72,7 @@ def run(args) -> int:
     else:
         cfg = SegmentConfig(
             voxel=args.voxel, graph_radius=args.graph_radius, attach_dist=args.attach_dist,
+            stem_bridge=args.stem_bridge,
             ground_tol=args.ground_tol, max_deviation=args.max_deviation, seed=args.seed,
             no_ground=args.no_ground,
         )
