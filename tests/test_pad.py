@@ -348,6 +348,51 @@ def test_missing_position_real_tls_and_cli_error(tmp_path, capsys):
         load_tls_scans(tmp_path / "nothing")
 
 
+def test_empty_shots_blocked_inside_the_minimum_range_are_left_out(tmp_path):
+    """Scanner A (1.5 m minimum range) has a leaf 0.9 m in front of it: its shots into the leaf
+    come back empty, like its shots into the sky. Scanner B, 5 m away, sees the leaf; A's empty
+    shots that pass within blind_radius of B's echoes there are left out, the sky shots stay."""
+    from vlsforest.pad.traverse import _drop_blind_shots
+
+    ang = np.radians(np.arange(-3.0, 3.01, 0.5))
+    a, b = np.meshgrid(ang, ang, indexing="ij")
+    leaf_dirs = np.column_stack([np.cos(a.ravel()) * np.cos(b.ravel()), np.sin(a.ravel()) * np.cos(b.ravel()),
+                                 np.sin(b.ravel())])  # within ±3° of +x: through the leaf (±0.1 m at 0.9 m)
+    sky_dirs = np.column_stack([np.zeros(20), np.cos(np.radians(np.linspace(30, 80, 20))),
+                                np.sin(np.radians(np.linspace(30, 80, 20)))])
+    far = np.array([[-1.0, 0.0, 0.0]] * 5)  # five shots with an echo at 10 m
+    dirs = np.vstack([leaf_dirs, sky_dirs, far])
+    echoes = [[] for _ in range(len(leaf_dirs) + len(sky_dirs))] + [[10.0]] * 5
+    sa = _scan([0.0, 0.0, 0.0], dirs, echoes)
+    sa.range_min_m = 1.5
+    # scanner B samples the leaf square x = 0.9, |y|, |z| ≤ 0.1 every 2 cm
+    g = np.arange(-0.1, 0.1001, 0.02)
+    yy, zz = np.meshgrid(g, g, indexing="ij")
+    leaf = np.column_stack([np.full(yy.size, 0.9), yy.ravel(), zz.ravel()])
+    ob = np.array([0.9, 5.0, 0.0])
+    rb = np.linalg.norm(leaf - ob, axis=1)
+    sb = _scan(ob, leaf - ob, [[r] for r in rb])
+    sb.range_min_m = 1.5
+    n_before = sa.n_shots
+    _drop_blind_shots([sa, sb], radius=0.04)
+    assert sa.blind_shots == len(leaf_dirs) and sa.n_shots == n_before - len(leaf_dirs)
+    # what is left: the sky shots (empty) and the shots with echoes, with their echoes intact
+    np.testing.assert_allclose(sa.direction[: len(sky_dirs)], sky_dirs / np.linalg.norm(sky_dirs, axis=1)[:, None])
+    assert np.diff(sa.shot_ptr).tolist() == [0] * len(sky_dirs) + [1] * 5
+    np.testing.assert_allclose(sa.echo_xyz(), [[-10.0, 0.0, 0.0]] * 5)
+    assert sb.blind_shots == 0 and sb.n_shots == len(leaf)  # B's shots all have echoes
+    # radius 0 switches it off; without a minimum range nothing is dropped
+    sc = _scan([0.0, 0.0, 0.0], dirs, echoes)
+    sc.range_min_m = 1.5
+    _drop_blind_shots([sc, sb], radius=0.0)
+    assert sc.blind_shots == 0 and sc.n_shots == n_before
+    sc.range_min_m = 0.0
+    _drop_blind_shots([sc, sb], radius=0.04)
+    assert sc.blind_shots == 0
+    with pytest.raises(ConfigError, match="blind_radius"):
+        load_tls_scans(tmp_path, blind_radius=-1)
+
+
 def test_grid_for_scans_global_lattice():
     sc = _scan([[0.3, 0.3, 0.3]], [[1.0, 1.0, 1.0]], echoes=[[3.0]])
     origin, shape = grid_for_scans([sc], 0.25, extent=[-1.1, -0.6, 3.3, 2.9])

@@ -201,3 +201,33 @@ def test_tls_positions_keep_clear_of_stems_and_low_crowns():
     x2, y2, _ = R.tls_positions(crowded, st["tls"])[0]["position"]
     assert np.hypot(x2 - x, y2 - y) >= 0.6 * np.sqrt(30.0 / np.pi) + 1.0 - 1e-9
     assert R.tls_clearance(crowded, x2, y2, st["tls"]) >= 0
+
+
+def test_tls_positions_keep_plant_surfaces_out_of_the_minimum_range():
+    """Given the trees' geometry, no plant surface lies within head_clearance_m of a scanner head:
+    a leaf cluster put 0.9 m from a position's head (inside the VZ-400's 1.5 m minimum range, where
+    it would block shots without an echo) moves the scanner until the head is 2 m clear of it."""
+    from vlsforest.synth.forest import forest_from_config
+
+    st = R.synth_settings({"forest": {"preset": "default"}})
+    plot = forest_from_config(st["forest"], 0)[2]
+    first = R.tls_positions(plot, st["tls"])[0]
+    x, y, z = first["position"]
+    # a small leaf cluster (two triangles) 0.9 m from the head, at head height
+    v = np.array([[x + 0.9, y - 0.05, z - 0.05], [x + 0.9, y + 0.05, z - 0.05],
+                  [x + 0.9, y + 0.05, z + 0.05], [x + 0.9, y - 0.05, z + 0.05]])
+    leaf = SimpleNamespace(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3]]))
+    moved = R.tls_positions(plot, st["tls"], {1: leaf})
+    x2, y2, z2 = moved[0]["position"]
+    d = np.min(np.linalg.norm(v - [x2, y2, z2], axis=1))
+    assert (x2, y2) != (x, y) and d >= st["tls"]["head_clearance_m"]
+    assert R.tls_clearance(plot, x2, y2, st["tls"]) >= 0  # still clear of stems and low crowns
+    # the other positions are untouched (the tilted scan on position 0 moves with it), and
+    # head_clearance_m = 0 switches the check off
+    n = st["tls"]["n_positions"]
+    assert moved[1:n] == R.tls_positions(plot, st["tls"])[1:n]
+    assert all(p["position"] == moved[0]["position"] for p in moved[n:] if p["heading_deg"] == moved[0]["heading_deg"])
+    off = R.tls_positions(plot, {**st["tls"], "head_clearance_m": 0.0}, {1: leaf})
+    assert off[0]["position"] == first["position"]
+    with pytest.raises(ConfigError, match="tls.head_clearance_m"):
+        R.synth_settings({"forest": {"preset": "default"}, "tls": {"head_clearance_m": -1}})

@@ -49,6 +49,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--mean-leaf-area", type=float, default=0.01, metavar="M2",
                    help="mean leaf area for the finite-leaf free path of the FPL estimator (0: turbid; default 0.01)")
     p.add_argument("--scans", type=int, nargs="+", metavar="K", help="use only these scan ids (default: all)")
+    p.add_argument("--blind-radius", type=float, default=0.04, metavar="M",
+                   help="an empty shot passing this close to an echo (of any scan) inside its scanner's minimum "
+                        "range was blocked there and is left out; 0 keeps all (default 0.04 m)")
     p.add_argument("--validate", type=Path, metavar="FOREST_DIR", help="recorded virtual forest to validate against")
     p.add_argument("--plot", metavar="NAME", help="plot name for --validate (default: the folder above TLS_DIR)")
     p.add_argument("--table", type=Path, metavar="OUT.csv", help="validation table (default OUT_validation.csv)")
@@ -101,7 +104,12 @@ def run(args) -> int:
     if args.min_shots < 1:
         raise ConfigError(f"--min-shots: must be ≥ 1, got {args.min_shots}")
     t0 = time.perf_counter()
-    scans = load_tls_scans(args.tls_dir, scan_ids=args.scans)
+    scans = load_tls_scans(args.tls_dir, scan_ids=args.scans, blind_radius=args.blind_radius)
+    n_blind = sum(sc.blind_shots for sc in scans)
+    if n_blind:
+        per = ", ".join(f"scan {sc.scan_id}: {sc.blind_shots}" for sc in scans if sc.blind_shots)
+        print(f"vlsforest pad: {n_blind} empty shots blocked inside the scanners' minimum range left out ({per})",
+              file=sys.stderr)
     for msg in low_return_scans(scans):
         print(f"vlsforest pad: warning: {msg}", file=sys.stderr)
     if not all(sc.empty_shots for sc in scans):

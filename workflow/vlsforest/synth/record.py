@@ -120,6 +120,7 @@ DEFAULT_TLS = {
     "n_tilted": 2,
     "tilt_deg": 40.0,
     "clearance_m": 2.0,        # a position keeps this far from stems and from crowns reaching down to it
+    "head_clearance_m": 2.0,   # and no plant surface this close to the scanner head (1.5 m minimum range + 0.5)
 }
 
 #: ALS / ULS campaign settings of the study (Table 3); altitude above ground by plot
@@ -283,14 +284,46 @@ def tls_clearance(plot, x: float, y: float, cfg: dict) -> float:
     return best
 
 
-def tls_positions(plot, cfg: dict) -> list[dict]:
+class _HeadClearance:
+    """Distance from a scanner head to the nearest plant surface (vertices and face centroids)."""
+
+    def __init__(self, plot, geometries: dict, cfg: dict):
+        from scipy.spatial import cKDTree
+
+        self.h = float(cfg["height_m"])
+        self.need = float(cfg["head_clearance_m"])
+        top = float(np.max(plot.ground.z(np.array([t.x for t in plot.trees] or [0.0]),
+                                         np.array([t.y for t in plot.trees] or [0.0])))) + self.h + self.need + 1.0
+        pts = []
+        for g in geometries.values():
+            v = np.asarray(g.vertices, float)
+            low = v[:, 2] <= top
+            if not low.any():
+                continue
+            f = np.asarray(g.faces)
+            f = f[low[f].any(axis=1)]
+            pts += [v[low], v[f].mean(axis=1)]
+        self.tree = cKDTree(np.vstack(pts)) if pts else None
+        self.plot = plot
+
+    def __call__(self, x: float, y: float) -> float:
+        if self.tree is None:
+            return np.inf
+        z = float(self.plot.ground.z(np.array([x]), np.array([y]))[0]) + self.h
+        d, _ = self.tree.query([x, y, z], k=1)
+        return float(d) - self.need
+
+
+def tls_positions(plot, cfg: dict, geometries: dict | None = None) -> list[dict]:
     """Scan positions on an ellipse around the targets (+ tilted extra scans for tall trees).
 
     Position ``k`` starts at angle ``2πk/n + π/n`` on the ellipse; where it stands too close to a
-    tree (:func:`tls_clearance`) it moves along the ellipse (up to ±0.4 of the spacing, 1° steps)
-    and, failing that, onto an ellipse up to 3 m smaller or larger, to the first clear spot (or the
-    clearest one when none is clear).
+    tree (:func:`tls_clearance`, and, given the trees' ``geometries``, a plant surface closer to
+    the scanner head than ``head_clearance_m``) it moves along the ellipse (up to ±0.4 of the
+    spacing, 1° steps) and, failing that, onto an ellipse up to 6 m smaller or larger, to the
+    first clear spot (or the clearest one when none is clear).
     """
+    head = _HeadClearance(plot, geometries, cfg) if geometries else None
     targets = [t for t in plot.trees if t.target]
     tx = np.array([t.x for t in targets])
     ty = np.array([t.y for t in targets])
@@ -304,11 +337,13 @@ def tls_positions(plot, cfg: dict) -> list[dict]:
     for k in range(n):
         phi0 = 2 * np.pi * k / n + np.pi / n
         best = None
-        for dr in (0.0, -1.0, 1.0, -2.0, 2.0, -3.0, 3.0):
+        for dr in (0.0, -1.0, 1.0, -2.0, 2.0, -3.0, 3.0, -4.0, 4.0, -5.0, 5.0, -6.0, 6.0):
             for dphi in shifts:
                 phi = phi0 + dphi
                 xy = (cx + (ax + dr) * np.cos(phi), cy + (ay + dr) * np.sin(phi))
                 c = tls_clearance(plot, *xy, cfg)
+                if head is not None:
+                    c = min(c, head(*xy))
                 if best is None or c > best[0]:
                     best = (c, xy)
                 if c >= 0:
@@ -404,7 +439,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         scene = base
         rows = []
         gps = 0.0
-        for k, pos in enumerate(tls_positions(plot, tls_cfg), start=1):
+        for k, pos in enumerate(tls_positions(plot, tls_cfg, geometries), start=1):
             sv = _tls_survey(pos, tls_cfg, physics.get("tls", {}), seed + 101 * k)
             survey = survey_from_dict(sv)
             res = simulate(scene, survey, workers=workers, keep_pulses=False)
@@ -516,6 +551,9 @@ def synth_settings(cfg: dict | None) -> dict:
         raise ConfigError(f"tls.n_positions must be an integer ≥ 1, got {tls['n_positions']!r}")
     if not tls["step_deg"] > 0:
         raise ConfigError(f"tls.step_deg must be > 0, got {tls['step_deg']!r}")
+    hc = tls["head_clearance_m"]
+    if isinstance(hc, bool) or not isinstance(hc, (int, float)) or not hc >= 0:
+        raise ConfigError(f"tls.head_clearance_m must be a number ≥ 0, got {hc!r}")
     camp = copy.deepcopy(DEFAULT_CAMPAIGN)
     for sensor, block in (cfg.get("recordings") or {}).items():
         if sensor not in camp:
