@@ -434,14 +434,17 @@ def test_quick_forest_pad_and_validation(quick_forest, tmp_path):
     assert (tmp_path / "Q1_validation.png").stat().st_size > 10_000
     allb = table[table["height_band"] == "crown"]
     assert np.all(allb["n_voxels"] > 500)
-    # target-crown voxels crossed by ≥ 20 shots: the estimate lies within 35 % of the truth
-    # (measured −14 … −23 %: clumped foliage inside voxels; the quick forest's 0.25° TLS leaves
-    # most of the middle and upper crown unsampled)
-    assert np.all(np.abs(allb["bias_pct"]) < 35.0), allb
+    # target-crown voxels crossed by ≥ 20 shots: the goal, |bias| ≤ 10 %, for both
+    # estimators (session 14: transmittance +0.8 / +0.1 %, FPL −2.6 / −3.2 % for beech / spruce;
+    # −14 … −23 % before the scanner heads were kept clear of foliage and blocked empty shots
+    # were left out), and the median |bias| over species × crown thirds ≤ 10 % (1.1 %, 3.3 %)
+    assert np.all(np.abs(allb["bias_pct"]) <= 10.0), allb
     assert np.all(allb["rmse"] < allb["mean_true_pad"] * 1.5)
-    # against the truth capped at PADmax the transmittance estimate is close (measured +0.3 %, −6.1 %)
+    from vlsforest.pad.validate import median_abs_bias
+
+    assert (median_abs_bias(table) <= 10.0).all(), median_abs_bias(table)
     capped = allb[allb["estimator"] == "transmittance"]["bias_pct_capped"]
-    assert np.all(np.abs(capped) < 15.0), capped
+    assert np.all(np.abs(capped) <= 10.0), capped
     # occlusion: the upper crown holds a larger share of unsampled plant area than the lower crown
     for sp, g in table[table["estimator"] == "transmittance"].groupby("species"):
         fr = g.set_index("height_band")["frac_undersampled"]
