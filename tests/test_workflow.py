@@ -189,6 +189,8 @@ def _mutate(cfg, what):
         cfg["pad"]["groups"]["broadleaf"]["lad"] = "flat"
     elif what == "unknown_method_kind":
         cfg["methods"]["fixed_0.25"]["kind"] = "voxelz"
+    elif what == "misspelt_segment_key":
+        cfg["segment"] = {"stem_bridges": 20}
     elif what == "real_plot_without_scans":
         cfg["plots"]["R1"] = {"kind": "real", "tls": ["a.laz"], "plot_json": "p.json"}
     return cfg
@@ -205,6 +207,7 @@ BAD_CONFIGS = [
     ("bad_lad", "pad.groups.broadleaf.lad", "'flat' is not one of"),
     ("real_plot_without_scans", "plots.R1", "'scans' is a required property"),
     ("unknown_method_kind", "methods.fixed_0.25.kind", "unknown kind 'voxelz'"),
+    ("misspelt_segment_key", "segment", "'stem_bridges' was unexpected"),
 ]
 
 
@@ -246,6 +249,12 @@ def test_schema_lists_match_the_library():
     assert set(scen["scanner"]["enum"]) == airborne
     overridable = {f.name for f in dataclasses.fields(ScannerSettings)} - {"name", "deflector"}
     assert set(scen["overrides"]["propertyNames"]["enum"]) == overridable
+    # the segment block lists exactly SegmentConfig's settings
+    from vlsforest.segment import SegmentConfig
+
+    seg = _load(SCHEMA)["properties"]["segment"]
+    assert seg["additionalProperties"] is False
+    assert set(seg["properties"]) == {f.name for f in dataclasses.fields(SegmentConfig)}
 
 
 def test_shipped_configs_are_valid():
