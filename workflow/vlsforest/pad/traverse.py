@@ -282,6 +282,16 @@ def _drop_blind_shots(scans: list[TlsScan], radius: float, step: float = 0.02) -
     echoes = np.concatenate([sc.echo_xyz() for sc in scans if sc.n_echoes] or [np.zeros((0, 3))])
     if len(echoes) == 0:
         return
+    near_trees = {}  # (position, reach) → KD-tree of the echoes within reach; tilted scans share positions
+
+    def near_tree(o, reach):
+        key = (*o.tolist(), reach)
+        if key not in near_trees:
+            dv = echoes - o
+            near = echoes[np.einsum("ij,ij->i", dv, dv) <= reach * reach]
+            near_trees[key] = cKDTree(near) if len(near) else None
+        return near_trees[key]
+
     for sc in todo:
         empty = np.flatnonzero(np.diff(sc.shot_ptr) == 0)
         if len(empty) == 0:
@@ -289,14 +299,12 @@ def _drop_blind_shots(scans: list[TlsScan], radius: float, step: float = 0.02) -
         blocked = np.zeros(len(empty), bool)
         origins, which = np.unique(sc.origin[empty], axis=0, return_inverse=True)
         which = which.reshape(-1)
-        reach = sc.range_min_m + radius
+        r = np.arange(step / 2, sc.range_min_m, step)
         for k, o in enumerate(origins):
-            near = echoes[np.einsum("ij,ij->i", echoes - o, echoes - o) <= reach * reach]
-            if len(near) == 0:
+            tree = near_tree(o, sc.range_min_m + radius)
+            if tree is None:
                 continue
-            tree = cKDTree(near)
             sel = np.flatnonzero(which == k)
-            r = np.arange(step / 2, sc.range_min_m, step)
             for c0 in range(0, len(sel), 20000):
                 part = sel[c0:c0 + 20000]
                 pts = o + sc.direction[empty[part]][:, None, :] * r[None, :, None]
