@@ -78,12 +78,18 @@ def _quick_view(seed: int, workdir: Path) -> Path:
     return wd
 
 
+def _tag() -> str:
+    """Suffix of a case's folder when the "real" beam sampling differs from BASE's."""
+    q = BASE["uls"]["beam_sample_quality"]
+    return "" if q == 4 else f"_q{q}"
+
+
 def _record(seed: int, case: str, workdir: Path) -> Path:
     """The quick forest of ``seed`` recorded with the case's effect hidden in the ULS."""
     from conftest import QUICK_SYNTH
     from vlsforest.synth.record import synthesize
 
-    out = workdir / f"seed{seed}" / case / "forest"
+    out = workdir / f"seed{seed}" / (case + _tag()) / "forest"
     if not (out / "plots" / "Q1" / "uls.laz").is_file():
         phys = json.loads(json.dumps(BASE))
         phys["uls"].update(CASES[case][0])
@@ -91,14 +97,15 @@ def _record(seed: int, case: str, workdir: Path) -> Path:
     return out
 
 
-def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal") -> dict:
+def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim_quality: int | None = None) -> dict:
     """Diagnose one case blind; return its row (criteria measured against the hidden values)."""
     from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
 
     wd = _quick_view(seed, workdir)
     res = wd / "results" / "Q1"
     cfg = workdir / f"seed{seed}" / "sim.yaml"
-    cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, "plots": {"Q1": {
+    extra = {} if sim_quality is None else {"beam_sample_quality": sim_quality}
+    cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, **extra, "plots": {"Q1": {
         "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
         "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
     forest = _record(seed, case, workdir)
@@ -111,7 +118,8 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal") -> 
     t0 = time.perf_counter()
     rep = diagnose(setup, log=lambda m: None)
     dt = time.perf_counter() - t0
-    (workdir / f"seed{seed}" / case / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}.json").write_text(json.dumps(rep, indent=1))
+    sq = "" if sim_quality is None else f"_sim{sim_quality}"
+    (workdir / f"seed{seed}" / (case + _tag()) / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}{sq}.json").write_text(json.dumps(rep, indent=1))
     top = rep["effects"][0] if rep["effects"] else {}
     hidden = CASES[case][1]
     fit_err = {}
@@ -127,7 +135,8 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal") -> 
     if recov and acc and o.get("error_fitted") is not None:
         # share of the recoverable error (given − told the truth) that the accepted fits remove
         removed = (o["error_given"] - o["error_fitted"]) / recov
-    return {"seed": seed, "case": case, "metric": metric, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
+    return {"seed": seed, "case": case, "metric": metric, "real_quality": BASE["uls"]["beam_sample_quality"],
+            "sim_quality": sim_quality, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
             "top": top.get("name"), "top_group": top.get("group"),
             "top_ev": top.get("explained_fraction"), "second": (rep["effects"][1]["name"] if len(rep["effects"]) > 1 else None),
             "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
@@ -181,7 +190,14 @@ def main(argv=None) -> int:
     ap.add_argument("--summary", action="store_true", help="only print the criteria over --out")
     ap.add_argument("--metric", choices=("diagonal", "whitened"), default="diagonal",
                     help="the diagnosis' attribution metric (runs are kept apart by metric)")
+    ap.add_argument("--real-quality", type=int, default=4,
+                    help="beam sample quality of the \"real\" ULS (BASE: 4, i.e. 37 sub-rays; the "
+                         "simulation's is 3, 19 sub-rays); runs are kept apart by it")
+    ap.add_argument("--sim-quality", type=int, default=None,
+                    help="beam sample quality of the diagnosis' own simulations (sim-config "
+                         "beam_sample_quality; default: the survey's, 3); runs are kept apart by it")
     a = ap.parse_args(argv)
+    BASE["uls"]["beam_sample_quality"] = a.real_quality
     import pandas as pd
 
     out = a.out or a.workdir / "runs.jsonl"
@@ -191,17 +207,18 @@ def main(argv=None) -> int:
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
-        have = {(r["seed"], r["case"], r.get("metric", "diagonal")) for r in done}
+        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", 4), r.get("sim_quality")) for r in done}
         for seed in a.seeds:
             for case in cases:
-                if (seed, case, a.metric) in have:
+                if (seed, case, a.metric, a.real_quality, a.sim_quality) in have:
                     continue
-                row = _run_case(seed, case, a.workdir, a.metric)
+                row = _run_case(seed, case, a.workdir, a.metric, a.sim_quality)
                 print(json.dumps(row), flush=True)
                 with out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
-    done = [r for r in done if r.get("metric", "diagonal") == a.metric]
+    done = [r for r in done if r.get("metric", "diagonal") == a.metric
+            and r.get("real_quality", 4) == a.real_quality and r.get("sim_quality") == a.sim_quality]
     if done:
         summarise(pd.DataFrame(done))
     return 0

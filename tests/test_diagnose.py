@@ -254,6 +254,30 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
     assert traced == [tuple(base), tuple(2 * base), tuple(3 * base), tuple(2 * base), tuple(3 * base)]
 
 
+def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
+    """sim-config `beam_sample_quality` sets the sub-ray rings of every simulation of the
+    diagnosis and keeps the survey's other settings (and the survey mapping it came from)."""
+    from vlsforest.diagnose import core, load_setup
+    from vlsforest.sim import survey_from_dict
+
+    survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3, "window_size_ns": 1.5},
+              "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
+    assert core._resampled(survey, None) is survey
+    fine = core._resampled(survey, 5)
+    sc = survey_from_dict(fine).scanner
+    assert sc.beam_sample_quality == 5 and sc.window_size_ns == 1.5
+    assert survey["overrides"]["beam_sample_quality"] == 3
+    # 61 sub-rays instead of 19, whose rings reach 4/5 instead of 2/3 of the beam extent
+    from vlsforest.sim.beam import subray_pattern
+
+    pat = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad)
+    assert pat.n == 61 and pat.frac.max() == pytest.approx(0.8)
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": 5,
+                                   "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
+    assert load_setup(cfg, real_dir=tmp_path).beam_sample_quality == 5
+
+
 # ------------------------------------------------------------------------------------ library
 def test_library_reads_baselines_and_applies_values():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
@@ -303,6 +327,11 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                                    "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
     with pytest.raises(ConfigError, match="metric must be diagonal or whitened"):
         load_setup(bad, real_dir=tmp_path)
+    for q in (0, 2.5, True):
+        bad.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": q,
+                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
+        with pytest.raises(ConfigError, match="beam_sample_quality must be an integer ≥ 1"):
+            load_setup(bad, real_dir=tmp_path)
     proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
                            "--sim-config", str(tmp_path / "missing.yaml"), "--scenario", "uls",
                            "-o", str(tmp_path / "o.json")], capture_output=True, text=True)
@@ -385,12 +414,19 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
     jobs = dict(line.split() for line in proc.stdout.splitlines() if len(line.split()) == 2
                 and line.split()[1].isdigit())
     assert jobs.get("diagnose") == "1", proc.stdout
-    for key, val, msg in (("method", "nope", "diagnosis.method"), ("scenarios", ["tls"], "diagnosis.scenarios")):
+    for key, val, msg in (("method", "nope", "diagnosis.method"), ("scenarios", ["tls"], "diagnosis.scenarios"),
+                          ("beam_sample_quality", 0, "diagnosis.beam_sample_quality")):
         bad = json.loads(json.dumps(cfg))
         bad["diagnosis"][key] = val
         path.write_text(yaml.safe_dump(bad))
         proc = snakemake_cli("-n", "--configfile", path, cwd=tmp_path)
         assert proc.returncode != 0 and f"Invalid configuration at '{msg}'" in proc.stdout + proc.stderr
+    # the diagnosis' beam sampling reaches its sim-config (and so the job's params)
+    fine = json.loads(json.dumps(cfg))
+    fine["diagnosis"]["beam_sample_quality"] = 5
+    path.write_text(yaml.safe_dump(fine))
+    proc = snakemake_cli("-n", "-p", "--configfile", path, cwd=tmp_path)
+    assert proc.returncode == 0 and '"beam_sample_quality": 5' in proc.stdout + proc.stderr, proc.stdout[-3000:]
     # config/no-diagnosis.yaml merged over a config with the diagnosis on leaves only that job out
     cfg["diagnosis"] = {"enabled": True, "method": "scaled", "scenarios": ["uls"], "folds": 3}
     path.write_text(yaml.safe_dump(cfg))

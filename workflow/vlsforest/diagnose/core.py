@@ -86,6 +86,10 @@ class Setup:
     #: explained fraction in the ``diagonal`` metric (1 / across-tree variance per observable) or
     #: the ``whitened`` one (shrunk across-tree correlation; experimental, see the README)
     metric: str = "diagonal"
+    #: sub-ray rings of the diagnosis' own simulations (None: the survey's). Footprint fits are
+    #: biased when the simulation samples the beam more coarsely than the real beam is (fewer
+    #: sub-rays split fewer echoes, so a wider beam is fitted); see the README "Diagnosis"
+    beam_sample_quality: int | None = None
     #: benchmarks only: the hidden truth as candidate values; the report then also gives the
     #: error of a simulation told these values (the "recoverable" error's reference)
     oracle: dict | None = None
@@ -103,6 +107,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         candidates: [range_noise, …]  # default: the whole library
         metric: diagonal              # or whitened: explained fractions in the metric of the
                                       # residuals' shrunk across-tree correlation (experimental)
+        beam_sample_quality: 4        # sub-ray rings of the diagnosis' simulations (default: the
+                                      # survey's); finer than the study's for footprint fits
         plots:
           Q1:
             real: …/Q1/uls.laz        # default: <--real DIR>/<plot>/<recording>.laz
@@ -126,7 +132,7 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
     known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects",
-             "metric"}
+             "metric", "beam_sample_quality"}
     for k in d:
         if k not in known:
             raise ConfigError(f"{path}: unknown key {k!r} (known: {', '.join(sorted(known))})")
@@ -162,9 +168,12 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     metric = d.get("metric", "diagonal")
     if metric not in ("diagonal", "whitened"):
         raise ConfigError(f"{path}: metric must be diagonal or whitened, got {metric!r}")
+    q = d.get("beam_sample_quality")
+    if q is not None and (isinstance(q, bool) or not isinstance(q, int) or q < 1):
+        raise ConfigError(f"{path}: beam_sample_quality must be an integer ≥ 1, got {q!r}")
     return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), int(d.get("workers", 2)),
                  int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")),
-                 metric=metric)
+                 metric=metric, beam_sample_quality=q)
 
 
 # ------------------------------------------------------------------------------------ simulation
@@ -192,10 +201,17 @@ def _release_freed_memory():
         trim(0)
 
 
+def _resampled(survey: dict, quality: int | None) -> dict:
+    """``survey`` with its beam sampled by ``quality`` sub-ray rings (``None``: as it is)."""
+    if quality is None:
+        return survey
+    return dict(survey, overrides=dict(survey.get("overrides") or {}, beam_sample_quality=int(quality)))
+
+
 class _PlotSim:
     """One plot: its scene, survey, trees and real observables; simulations with caching."""
 
-    def __init__(self, p: PlotInput, seed: int, workers: int, log):
+    def __init__(self, p: PlotInput, seed: int, workers: int, log, beam_sample_quality: int | None = None):
         from vlsforest.io.las import read_las
         from vlsforest.sim import Scene
         from vlsforest.sim.survey import load_survey_dict
@@ -217,7 +233,7 @@ class _PlotSim:
         allp = np.concatenate(list(pts.values()))
         lo, hi = allp[:, :2].min(axis=0), allp[:, :2].max(axis=0)
         self.region = [lo[0] - p.margin, lo[1] - p.margin, hi[0] + p.margin, hi[1] + p.margin]
-        self.survey = load_survey_dict(p.survey)
+        self.survey = _resampled(load_survey_dict(p.survey), beam_sample_quality)
         self.survey_dir = Path(p.survey).resolve().parent
         self.has_scaled = False
 
@@ -322,7 +338,7 @@ class _Study:
     """All plots together: observables of real and simulated trees, cached per parameter set."""
 
     def __init__(self, setup: Setup, log):
-        self.plots = [_PlotSim(p, setup.seed, setup.workers, log) for p in setup.plots]
+        self.plots = [_PlotSim(p, setup.seed, setup.workers, log, setup.beam_sample_quality) for p in setup.plots]
         self.real = pd.concat([p.real for p in self.plots])
         self._cache: dict = {}
 
