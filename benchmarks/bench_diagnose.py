@@ -37,6 +37,9 @@ sys.path.insert(0, str(REPO / "tests"))
 BASE = {"als": {"beam_sample_quality": 4}, "uls": {"beam_sample_quality": 4},
         "tls": {"range_noise": {"sigma_m": 0.005}}}
 
+#: the "real" ULS's beam sampling in BASE (rows without a ``real_quality`` were run with it)
+REAL_QUALITY = BASE["uls"]["beam_sample_quality"]
+
 #: case → (ULS physics hidden on top of BASE, oracle candidate values, expected candidate/group)
 CASES = {
     "null": ({}, {}, None),
@@ -81,7 +84,7 @@ def _quick_view(seed: int, workdir: Path) -> Path:
 def _tag() -> str:
     """Suffix of a case's folder when the "real" beam sampling differs from BASE's."""
     q = BASE["uls"]["beam_sample_quality"]
-    return "" if q == 4 else f"_q{q}"
+    return "" if q == REAL_QUALITY else f"_q{q}"
 
 
 def _record(seed: int, case: str, workdir: Path) -> Path:
@@ -190,7 +193,7 @@ def main(argv=None) -> int:
     ap.add_argument("--summary", action="store_true", help="only print the criteria over --out")
     ap.add_argument("--metric", choices=("diagonal", "whitened"), default="diagonal",
                     help="the diagnosis' attribution metric (runs are kept apart by metric)")
-    ap.add_argument("--real-quality", type=int, default=4,
+    ap.add_argument("--real-quality", type=int, default=REAL_QUALITY,
                     help="beam sample quality of the \"real\" ULS (BASE: 4, i.e. 37 sub-rays; the "
                          "simulation's is 3, 19 sub-rays); runs are kept apart by it")
     ap.add_argument("--sim-quality", type=int, default=None,
@@ -207,7 +210,8 @@ def main(argv=None) -> int:
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
-        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", 4), r.get("sim_quality")) for r in done}
+        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", REAL_QUALITY), r.get("sim_quality"))
+                for r in done}
         for seed in a.seeds:
             for case in cases:
                 if (seed, case, a.metric, a.real_quality, a.sim_quality) in have:
@@ -218,7 +222,7 @@ def main(argv=None) -> int:
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
     done = [r for r in done if r.get("metric", "diagonal") == a.metric
-            and r.get("real_quality", 4) == a.real_quality and r.get("sim_quality") == a.sim_quality]
+            and r.get("real_quality", REAL_QUALITY) == a.real_quality and r.get("sim_quality") == a.sim_quality]
     if done:
         summarise(pd.DataFrame(done))
     return 0
