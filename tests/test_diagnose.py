@@ -219,6 +219,78 @@ def test_disc_selection_under_the_crown_equals_brute_force():
         assert np.array_equal(_within(xy, idx, cx, cy, r), want)
 
 
+def test_column_index_boxes_equal_brute_force_for_small_and_large_grids_and_non_finite_points():
+    # a grid of < 65 535 columns sorts 16-bit keys (radix), a larger one the int64 keys: both
+    # must give every point of a box's columns, and points without finite x, y none
+    from vlsforest.extract import _ColumnIndex
+
+    rng = np.random.default_rng(11)
+    for side in (50.0, 400.0):  # 2 500 and 160 000 columns of 1 m
+        xy = rng.uniform(0, side, (40000, 2))
+        xy[:7] = [[np.nan, 1.0], [2.0, np.inf], [-np.inf, -np.inf], [np.nan, np.nan], [0.0, 0.0],
+                  [side, side], [side / 2, 0.0]]
+        idx = _ColumnIndex(xy)
+        assert (idx.nx * idx.ny < 65535) == (side == 50.0)
+        assert np.all(np.diff(idx.key) >= 0) and np.sum(idx.key < 0) == 4
+        for x0, y0, x1, y1 in [(3.2, 4.7, 9.9, 12.1), (0, 0, 1, 1), (side - 2.5, 0.1, side, 3.0), (-5, -5, -1, -1)]:
+            got = np.sort(idx.box(x0, y0, x1, y1))
+            fx, fy = np.floor(xy[:, 0] - idx.lo[0]), np.floor(xy[:, 1] - idx.lo[1])
+            lo = np.floor(np.array([x0, y0]) - idx.lo)
+            hi = np.floor(np.array([x1, y1]) - idx.lo)
+            want = np.flatnonzero(np.isfinite(xy).all(axis=1) & (fx >= lo[0]) & (fx <= hi[0]) & (fy >= lo[1])
+                                  & (fy <= hi[1]))
+            assert np.array_equal(got, want)
+
+
+def test_ground_statistics_group_cells_and_lines_like_a_row_wise_unique():
+    # the per-(cell, line) planes, grouped through one integer per row, against a direct
+    # per-group least-squares fit
+    from vlsforest.diagnose.features import _ground_stats
+
+    rng = np.random.default_rng(12)
+    n = 6000
+    xyz = np.c_[rng.uniform(-7.5, 4.5, n), rng.uniform(100.2, 109.9, n), np.zeros(n)]
+    line = rng.choice([3, 17, 1024], n)
+    xyz[:, 2] = 0.2 * xyz[:, 0] - 0.1 * xyz[:, 1] + 0.05 * (line == 17) + rng.normal(0, 0.01, n)
+    sd, dz = _ground_stats(xyz, line)
+    key = np.c_[np.floor(xyz[:, :2]).astype(int), line]
+    groups, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    heights, sse, dof = {}, 0.0, 0
+    for g in range(len(groups)):
+        m = inv == g
+        if m.sum() < 5:
+            continue
+        c = groups[g, :2] + 0.5
+        A = np.c_[np.ones(m.sum()), xyz[m, 0] - c[0], xyz[m, 1] - c[1]]
+        coef, *_ = np.linalg.lstsq(A, xyz[m, 2], rcond=None)
+        sse += float(np.sum((xyz[m, 2] - A @ coef) ** 2))
+        dof += int(m.sum()) - 3
+        heights.setdefault(tuple(groups[g, :2]), []).append(coef[0])
+    diffs = [abs(a - b) for h in heights.values() for i, a in enumerate(h) for b in h[i + 1:]]
+    assert sd == pytest.approx(np.sqrt(sse / dof), rel=1e-6)
+    assert dz == pytest.approx(np.median(diffs), rel=1e-9)
+    assert sd == pytest.approx(0.01, rel=0.1) and dz == pytest.approx(0.05, rel=0.3)
+
+
+def test_tree_labeller_built_once_labels_many_clouds_like_extract_reference():
+    from vlsforest.diagnose.features import label_trees, tree_labeller
+    from vlsforest.extract import extract_reference
+    from vlsforest.io.las import PointCloud
+
+    rng = np.random.default_rng(13)
+    trees = {t: rng.normal([3.0 * t, 0.0, 10.0], [1.0, 1.0, 3.0], (2000, 3)) for t in (4, 9, 2)}
+    lab = tree_labeller(trees, 0.3, workers=2)
+    for k in range(3):
+        xyz = rng.uniform([-3, -4, 0], [30, 4, 20], (20000, 3))
+        cls = rng.choice([2, 5, 7], len(xyz))
+        arrays = {"xyz": xyz, "classification": cls}
+        want = extract_reference(trees, PointCloud(xyz, {"classification": cls}), 0.3)
+        assert (want > 0).sum() > 100 and set(np.unique(want)) == {0, 2, 4, 9}
+        assert np.array_equal(lab(arrays), want)
+        assert np.array_equal(label_trees(arrays, trees, 0.3), want)
+
+
 def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeypatch, tmp_path):
     import vlsforest.sim as vsim
     from vlsforest.diagnose import core

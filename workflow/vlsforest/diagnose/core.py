@@ -45,7 +45,7 @@ import yaml
 
 from vlsforest.diagnose import library as lib
 from vlsforest.diagnose import stats as st
-from vlsforest.diagnose.features import FEATURES, STRATUM, cloud_arrays, label_trees, tree_features, tree_table
+from vlsforest.diagnose.features import FEATURES, STRATUM, cloud_arrays, tree_features, tree_labeller, tree_table
 from vlsforest.errors import ConfigError, InputDataError
 
 ALPHA = 0.05
@@ -229,6 +229,7 @@ class _PlotSim:
         if len(pts) < 5:
             raise InputDataError(f"{seg}: {len(pts)} segmented trees with points; the diagnosis needs ≥ 5 per plot")
         self.tree_points = pts
+        self._label = tree_labeller(pts, p.radius, workers)  # every simulation is labelled against these trees
         self.trees = tree_table(pts, stems)
         allp = np.concatenate(list(pts.values()))
         lo, hi = allp[:, :2].min(axis=0), allp[:, :2].max(axis=0)
@@ -251,8 +252,11 @@ class _PlotSim:
         self.n_redetected = 0
 
     def _features(self, arrays):
-        lab = label_trees(arrays, self.tree_points, self.p.radius)
-        f = tree_features(arrays, lab, self.trees)
+        from vlsforest.extract import _ColumnIndex
+
+        columns = _ColumnIndex(arrays["xyz"][:, :2])  # for the labels and the features
+        lab = self._label(arrays, columns)
+        f = tree_features(arrays, lab, self.trees, columns)
         f.index = pd.MultiIndex.from_product([[self.p.name], f.index], names=["plot", "tree_id"])
         return f
 

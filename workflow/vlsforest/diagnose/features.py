@@ -118,11 +118,22 @@ def label_trees(arrays: dict, tree_points: dict, radius: float) -> np.ndarray:
     Ground and noise returns (LAS classes 2, 7, 18) are never a tree's, as in
     :func:`vlsforest.extract.extract_reference`.
     """
-    from vlsforest.extract import extract_reference
+    return tree_labeller(tree_points, radius)(arrays)
+
+
+def tree_labeller(tree_points: dict, radius: float, workers: int = 1):
+    """:func:`label_trees` for many clouds of the same trees: the trees' search structures are
+    built once; the returned callable takes the ``arrays`` of a cloud (and optionally a
+    column index of its x, y, as :func:`tree_features` takes it) and gives its labels.
+    ``workers``: threads of the nearest-point queries."""
+    from vlsforest.extract import _TreeLabeller
     from vlsforest.io.las import PointCloud
 
-    return extract_reference(tree_points, PointCloud(arrays["xyz"], {"classification": arrays["classification"]}),
-                             radius)
+    lab = _TreeLabeller(tree_points, radius, workers)
+
+    def label(arrays: dict, columns=None) -> np.ndarray:
+        return lab(PointCloud(arrays["xyz"], {"classification": arrays["classification"]}), columns=columns)
+    return label
 
 
 def _pulse_key(a: dict, idx: np.ndarray) -> np.ndarray:
@@ -169,8 +180,12 @@ def _ground_stats(xyz, line, cell=1.0):
     dx, dy = xyz[:, 0] - centre[:, 0], xyz[:, 1] - centre[:, 1]
     z = xyz[:, 2]
     key = np.stack([ij[:, 0], ij[:, 1], np.asarray(line, np.int64)], axis=1)
-    groups, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    # the groups in np.unique(key, axis=0)'s lexicographic order, from one integer per row
+    k = key - key.min(axis=0)
+    span = k.max(axis=0) + 1
+    _, first, inv, cnt = np.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2], return_index=True,
+                                   return_inverse=True, return_counts=True)
+    groups = key[first]
     g = len(groups)
 
     def s(v):
@@ -213,7 +228,7 @@ def _within(xy, columns, cx, cy, r):
     return np.sort(near[np.sum((xy[near] - [cx, cy]) ** 2, axis=1) <= r ** 2])
 
 
-def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.DataFrame:
+def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns=None) -> pd.DataFrame:
     """Observables of every tree (rows) — see the module docstring for the columns.
 
     Parameters
@@ -225,6 +240,8 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.D
     trees : pandas.DataFrame
         One row per tree with ``tree_id``, stem base ``x``, ``y``, ``z`` and ``crown_radius``
         (m; the column under the crown for the ground observables).
+    columns : vlsforest.extract._ColumnIndex, optional
+        A column index of the points' x, y (built here if not given; labelling can share it).
 
     Returns
     -------
@@ -239,14 +256,16 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame) -> pd.D
     if len(labels) != n:
         raise InputDataError(f"{len(labels)} labels for {n} points")
     rows = []
-    order = np.argsort(labels, kind="stable")
+    small = n and labels.min() >= 0 and labels.max() < np.iinfo(np.uint16).max
+    order = np.argsort(labels.astype(np.uint16) if small else labels, kind="stable")  # same order; radix if small
     bounds = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="left")
     ends = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="right")
     gsel = arrays["classification"] == 2
     gxyz = xyz[gsel]
     gline = np.asarray(arrays["point_source_id"])[gsel]
     allxy = xyz[:, :2]
-    columns, gcolumns = _ColumnIndex(allxy), _ColumnIndex(gxyz[:, :2])
+    columns = _ColumnIndex(allxy) if columns is None else columns
+    gcolumns = _ColumnIndex(gxyz[:, :2])
     for (_, t), b, e in zip(trees.iterrows(), bounds, ends):
         idx = order[b:e]
         row = {"tree_id": int(t.tree_id)}
