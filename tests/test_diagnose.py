@@ -351,6 +351,36 @@ def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ library
+def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace(quick_run, tmp_path):
+    # the diagnosis traces the pulses that enter the trees' observed region (points ± radius,
+    # ground columns under the crowns); the pulses it skips leave no return that an observable
+    # reads, so the observables equal those of a trace over a far wider region, bit for bit
+    # (the noise-free survey: no random draws that depend on which pulses a block holds)
+    from vlsforest.diagnose import core
+
+    workdir, _, _ = quick_run
+    res = workdir / "results" / "Q1"
+    sims = {}
+    for margin in (0.0, 15.0):
+        p = core.PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
+                           res / "scaled" / "scene" / "scene.yaml", res / "surveys" / "uls.yaml", res / "segment",
+                           0.3, margin)
+        ps = core._PlotSim(p, 0, 2, lambda m: None)
+        assert ps._key({})[1].scanner.range_noise_m == 0
+        pulses, _ = ps._trace({})
+        sims[margin] = (ps.region, len(pulses["slot"]), ps.features({}))
+    (r0, n0, f0), (r1, n1, f1) = sims[0.0], sims[15.0]
+    assert r1[0] == pytest.approx(r0[0] - 15) and r1[3] == pytest.approx(r0[3] + 15)
+    assert n0 < 0.9 * n1  # fewer pulses traced …
+    assert f0.notna().sum().sum() > 200
+    pd.testing.assert_frame_equal(f0, f1)  # … the same observables
+    # the region covers every tree point ± radius and every stem's ground column
+    for tid, pts in ps.tree_points.items():
+        assert pts[:, 0].min() - 0.3 >= r0[0] and pts[:, 1].max() + 0.3 <= r0[3]
+    reach = ps.trees.crown_radius + 2.0
+    assert (ps.trees.x - reach).min() >= r0[0] - 1e-9 and (ps.trees.y + reach).max() <= r0[3] + 1e-9
+
+
 def test_library_reads_baselines_and_applies_values():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
     c = lib.CANDIDATES
@@ -403,6 +433,11 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
         bad.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": q,
                                        "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
         with pytest.raises(ConfigError, match="beam_sample_quality must be an integer ≥ 1"):
+            load_setup(bad, real_dir=tmp_path)
+    for m in (-1, "wide", None):
+        bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c",
+                                                                          "radius": 0.3, "margin": m}}}))
+        with pytest.raises(ConfigError, match="plots.Q1.margin must be a number ≥ 0"):
             load_setup(bad, real_dir=tmp_path)
     proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
                            "--sim-config", str(tmp_path / "missing.yaml"), "--scenario", "uls",
@@ -487,7 +522,8 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
                 and line.split()[1].isdigit())
     assert jobs.get("diagnose") == "1", proc.stdout
     for key, val, msg in (("method", "nope", "diagnosis.method"), ("scenarios", ["tls"], "diagnosis.scenarios"),
-                          ("beam_sample_quality", 0, "diagnosis.beam_sample_quality")):
+                          ("beam_sample_quality", 0, "diagnosis.beam_sample_quality"),
+                          ("region_margin_m", -1, "diagnosis.region_margin_m")):
         bad = json.loads(json.dumps(cfg))
         bad["diagnosis"][key] = val
         path.write_text(yaml.safe_dump(bad))
@@ -496,9 +532,11 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
     # the diagnosis' beam sampling reaches its sim-config (and so the job's params)
     fine = json.loads(json.dumps(cfg))
     fine["diagnosis"]["beam_sample_quality"] = 5
+    fine["diagnosis"]["region_margin_m"] = 2.5
     path.write_text(yaml.safe_dump(fine))
     proc = snakemake_cli("-n", "-p", "--configfile", path, cwd=tmp_path)
     assert proc.returncode == 0 and '"beam_sample_quality": 5' in proc.stdout + proc.stderr, proc.stdout[-3000:]
+    assert '"margin": 2.5' in proc.stdout + proc.stderr
     # config/no-diagnosis.yaml merged over a config with the diagnosis on leaves only that job out
     cfg["diagnosis"] = {"enabled": True, "method": "scaled", "scenarios": ["uls"], "folds": 3}
     path.write_text(yaml.safe_dump(cfg))

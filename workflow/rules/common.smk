@@ -383,7 +383,7 @@ def diagnosis_param(wildcards):
                 "survey": f"results/{plot}/surveys/{wildcards.scenario}.yaml",
                 "segment": f"results/{plot}/segment",
                 "radius": sc.get("extraction_radius_m", 0.5),
-                "margin": config["simulation"]["region_margin_m"],
+                "margin": d.get("region_margin_m", 1),
             }
             for plot in diagnosis_plots()
         },

@@ -45,7 +45,8 @@ import yaml
 
 from vlsforest.diagnose import library as lib
 from vlsforest.diagnose import stats as st
-from vlsforest.diagnose.features import FEATURES, STRATUM, cloud_arrays, tree_features, tree_labeller, tree_table
+from vlsforest.diagnose.features import (FEATURES, GROUND_PAD_M, STRATUM, cloud_arrays, tree_features, tree_labeller,
+                                         tree_table)
 from vlsforest.errors import ConfigError, InputDataError
 
 ALPHA = 0.05
@@ -116,6 +117,9 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
             survey: results/Q1/surveys/uls.yaml
             segment: results/Q1/segment     # segmentation folder (trees.csv, trees/*.laz)
             radius: 0.3               # extraction radius around the TLS tree points (m)
+            margin: 1                 # pulses are traced where they enter the observed region
+                                      # (the trees' points ± radius and the ground columns under
+                                      # their crowns) ± this (m; default 5)
 
     Relative paths are taken from the current directory.
     """
@@ -158,8 +162,11 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         r = p["radius"]
         if isinstance(r, bool) or not isinstance(r, (int, float)) or not r > 0:
             raise ConfigError(f"{path}: plots.{name}.radius must be > 0, got {r!r}")
+        m = p.get("margin", 5.0)
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not m >= 0:
+            raise ConfigError(f"{path}: plots.{name}.margin must be a number ≥ 0 (m), got {m!r}")
         out.append(PlotInput(str(name), Path(real), Path(p["scene"]), Path(p["survey"]), Path(p["segment"]),
-                             float(r), float(p.get("margin", 5.0))))
+                             float(r), float(m)))
     cands = d.get("candidates") or list(lib.CANDIDATES)
     lib.select(cands)
     folds = d.get("folds", 3)
@@ -177,6 +184,25 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
 
 
 # ------------------------------------------------------------------------------------ simulation
+def _observed_region(tree_points: dict, trees: pd.DataFrame, radius: float, margin: float) -> list:
+    """The horizontal box (xmin, ymin, xmax, ymax) whose returns the observables read, ± ``margin``.
+
+    The trees' returns lie within ``radius`` of their TLS points; the ground observables read
+    the columns of crown radius + :data:`~vlsforest.diagnose.features.GROUND_PAD_M` around the
+    stems. A pulse whose beam never enters the box (from the ground to the scene's top) leaves
+    no return in it, so the diagnosis traces only the pulses that enter it: the observables are
+    those of the whole survey, at the cost of the pulses that matter.
+    """
+    allp = np.concatenate([np.asarray(v)[:, :2] for v in tree_points.values()])
+    lo, hi = allp.min(axis=0) - radius, allp.max(axis=0) + radius
+    if len(trees):
+        reach = trees["crown_radius"].to_numpy(float) + GROUND_PAD_M
+        xy = trees[["x", "y"]].to_numpy(float)
+        lo = np.minimum(lo, (xy - reach[:, None]).min(axis=0))
+        hi = np.maximum(hi, (xy + reach[:, None]).max(axis=0))
+    return [float(lo[0] - margin), float(lo[1] - margin), float(hi[0] + margin), float(hi[1] + margin)]
+
+
 def _trace_part(assign: dict) -> dict:
     """The candidates of ``assign`` that need a new ray trace (the rest re-renders stored hits)."""
     return {k: v for k, v in assign.items() if lib.CANDIDATES[k].render == "trace"}
@@ -231,9 +257,7 @@ class _PlotSim:
         self.tree_points = pts
         self._label = tree_labeller(pts, p.radius, workers)  # every simulation is labelled against these trees
         self.trees = tree_table(pts, stems)
-        allp = np.concatenate(list(pts.values()))
-        lo, hi = allp[:, :2].min(axis=0), allp[:, :2].max(axis=0)
-        self.region = [lo[0] - p.margin, lo[1] - p.margin, hi[0] + p.margin, hi[1] + p.margin]
+        self.region = _observed_region(pts, self.trees, p.radius, p.margin)
         self.survey = _resampled(load_survey_dict(p.survey), beam_sample_quality)
         self.survey_dir = Path(p.survey).resolve().parent
         self.has_scaled = False

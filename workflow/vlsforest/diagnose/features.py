@@ -45,6 +45,8 @@ from vlsforest.errors import InputDataError
 ANGLE_SPLIT_DEG = 15.0
 #: inter-echo distances below this count as "short" (m)
 SHORT_ECHO_M = 1.0
+#: the ground observables read the ground returns this far beyond a tree's crown radius (m)
+GROUND_PAD_M = 2.0
 #: the study's metrics used as observables
 STUDY_METRICS = ("height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "multi_return_pct")
 #: every observable, in column order
@@ -306,7 +308,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
         col = _within(allxy, columns, float(t.x), float(t.y), float(t.crown_radius))
         if len(col) >= 20:
             row["ground_share_pct"] = 100.0 * float(np.mean(arrays["classification"][col] == 2))
-        gcol = _within(gxyz[:, :2], gcolumns, float(t.x), float(t.y), float(t.crown_radius) + 2.0)
+        gcol = _within(gxyz[:, :2], gcolumns, float(t.x), float(t.y), float(t.crown_radius) + GROUND_PAD_M)
         row["ground_sd_local"], row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])
         rows.append(row)
     df = pd.DataFrame(rows).set_index("tree_id")
