@@ -100,6 +100,14 @@ def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.
                                        "height", "dist"])
 
 
+def _stable_argsort(key: np.ndarray) -> np.ndarray:
+    """``np.argsort(key, kind="stable")`` of integer keys; by 16-bit radix (≈ 6× faster on 10⁷
+    keys) when every key lies in [0, 65535)."""
+    if len(key) and key.min() >= 0 and key.max() < np.iinfo(np.uint16).max:
+        return np.argsort(key.astype(np.uint16), kind="stable")
+    return np.argsort(key, kind="stable")
+
+
 class _ColumnIndex:
     """Points bucketed into square columns of side ``cell`` (m), to gather the points of a
     horizontal box without scanning the whole cloud.
@@ -125,9 +133,7 @@ class _ColumnIndex:
         key = i * self.ny + j
         if not every:
             key[~ok] = -1
-        # the same stable order either way; 16-bit keys sort by radix (≈ 6× faster on 10⁷ points)
-        small = self.nx * self.ny < np.iinfo(np.uint16).max
-        self.order = np.argsort((key + 1).astype(np.uint16) if small else key, kind="stable")
+        self.order = _stable_argsort(key + 1)  # key + 1 ≥ 0: the same order as key's
         self.key = key[self.order]
 
     def box(self, x0, y0, x1, y1) -> np.ndarray:

@@ -250,7 +250,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     pandas.DataFrame
         Index ``tree_id``, columns :data:`FEATURES`; NaN where a tree has too few points.
     """
-    from vlsforest.extract import _ColumnIndex
+    from vlsforest.extract import _ColumnIndex, _stable_argsort
     from vlsforest.metrics import tree_metrics
 
     xyz = arrays["xyz"]
@@ -258,8 +258,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     if len(labels) != n:
         raise InputDataError(f"{len(labels)} labels for {n} points")
     rows = []
-    small = n and labels.min() >= 0 and labels.max() < np.iinfo(np.uint16).max
-    order = np.argsort(labels.astype(np.uint16) if small else labels, kind="stable")  # same order; radix if small
+    order = _stable_argsort(labels)
     bounds = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="left")
     ends = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="right")
     gsel = arrays["classification"] == 2
