@@ -34,8 +34,11 @@ Steps (see the README section "Diagnosis"):
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +50,7 @@ from vlsforest.diagnose import library as lib
 from vlsforest.diagnose import stats as st
 from vlsforest.diagnose.features import (FEATURES, GROUND_PAD_M, STRATUM, cloud_arrays, tree_features, tree_labeller,
                                          tree_table)
-from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 
 ALPHA = 0.05
 PENALTY = 0.05          # explained-fraction penalty per parameter
@@ -346,20 +349,70 @@ class _PlotSim:
         self._pinned = self._key(_trace_part(assign))[0]
 
     def features(self, assign: dict) -> pd.DataFrame:
+        """The observables of the simulation with ``assign`` (cached)."""
+        self.prefetch([assign])
+        return self._sims[self._key(assign)[0]]
+
+    def prefetch(self, assigns: list) -> None:
+        """Simulate every assignment of ``assigns`` not cached yet and cache its observables.
+
+        The assignments are grouped by the trace they render from (in order of first
+        appearance), so each trace is made once; the renders of one trace run in forked worker
+        processes (at most ``workers``), which share the trace's hits with the parent and send
+        back only the observables. A render depends only on its assignment and the seed: the
+        observables are the same in any order and any number of workers.
+        """
+        groups: dict = {}
+        pending = set()
+        for a in assigns:
+            key, sv, edits = self._key(a)
+            if key in self._sims or key in pending:
+                continue
+            pending.add(key)
+            part = _trace_part(a)
+            groups.setdefault(self._key(part)[0], (part, []))[1].append((key, sv, edits))
+        for part, jobs in groups.values():
+            pulses, hits = self._trace(part)
+            for (key, _, _), f in zip(jobs, self._render_all(jobs, pulses, hits)):
+                self._sims[key] = f
+            self.n_redetected += len(jobs)
+
+    def _render(self, pulses: dict, hits: dict, sv, edits: dict) -> pd.DataFrame:
+        """Re-detect stored hits with the survey ``sv`` and scene edits ``edits``; the observables."""
         from vlsforest.sim import redetect
 
-        key, sv, edits = self._key(assign)
-        if key not in self._sims:
-            pulses, hits = self._trace(_trace_part(assign))
-            parts = dict(self._parts,
-                         reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
-            if "specularity" in edits:
-                parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
-                parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
-            res = redetect(parts, pulses, hits, sv, seed=self.seed)
-            self.n_redetected += 1
-            self._sims[key] = self._features(cloud_arrays(res))
-        return self._sims[key]
+        parts = dict(self._parts, reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
+        if "specularity" in edits:
+            parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
+            parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
+        res = redetect(parts, pulses, hits, sv, seed=self.seed)
+        return self._features(cloud_arrays(res))
+
+    def _render_all(self, jobs: list, pulses: dict, hits: dict) -> list:
+        """:meth:`_render` of every ``(key, survey, edits)`` of ``jobs`` on one trace, in job order."""
+        global _RENDER
+        n = min(self.workers, len(jobs))
+        if n <= 1:
+            return [self._render(pulses, hits, sv, edits) for _, sv, edits in jobs]
+        _RENDER = (self, jobs, pulses, hits)
+        try:
+            with ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as pool:
+                return list(pool.map(_render_job, range(len(jobs))))
+        except BrokenProcessPool:
+            raise VlsforestError("a diagnosis render worker died (out of memory?); try fewer workers "
+                                 "('workers: 1' in the sim config)") from None
+        finally:
+            _RENDER = None
+
+
+#: what forked render workers read: (plot simulation, jobs, pulses, hits); set only while they run
+_RENDER = None
+
+
+def _render_job(i: int) -> pd.DataFrame:
+    ps, jobs, pulses, hits = _RENDER
+    _, sv, edits = jobs[i]
+    return ps._render(pulses, hits, sv, edits)
 
 
 class _Study:
@@ -374,6 +427,12 @@ class _Study:
         """Keep the traces of ``assign`` (the search's current baseline) cached in every plot."""
         for p in self.plots:
             p.pin(assign)
+
+    def prefetch(self, assigns: list) -> None:
+        """Simulate the assignments not cached yet, a trace's renders in parallel (see
+        :meth:`_PlotSim.prefetch`); :meth:`sim` then reads them from the cache."""
+        for p in self.plots:
+            p.prefetch(assigns)
 
     def sim(self, assign: dict) -> pd.DataFrame:
         key = json.dumps(assign, sort_keys=True)
@@ -431,13 +490,14 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
             return st.project_whitened(r, J, ww, sd, R)
     else:
         project = st.project
+    steps = [(c, base.get(c.name, c.baseline(study.survey))) for c in cands]
+    steps = [(c, cur, c.step(cur, study.survey)) for c, cur in steps]
+    study.prefetch([base] + [_merge(base, c.name, pert) for c, _, pert in steps])
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
     rows, sigs = [], {}
-    for c in cands:
-        cur = base.get(c.name, c.baseline(study.survey))
+    for c, cur, pert in steps:
         p0 = c.params[0]
         lo = c.bounds(study.survey)[p0.name][0]
-        pert = c.step(cur, study.survey)
         S1 = study.sim(_merge(base, c.name, pert)).reindex(study.real.index).to_numpy(float)
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J
@@ -503,11 +563,9 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     for par in cand.params:
         lo, hi = bounds[par.name]
         g = _grid(par, lo, hi, cur[par.name], n_grid if par is cand.params[0] else max(n_grid - 2, 3))
-        Ds = []
-        for v in g:
-            val = dict(allv)
-            val[par.name] = float(v)
-            Ds.append(study.residual(_merge(base, cand.name, val)))
+        grid = [_merge(base, cand.name, dict(allv, **{par.name: float(v)})) for v in g]
+        study.prefetch(grid)
+        Ds = [study.residual(a) for a in grid]
         curves[par.name] = (g, Ds)
         lg = par.log and lo > 0
         allv[par.name] = st.robust_fit(g, Ds, w, lo, hi, lg)
@@ -591,6 +649,7 @@ def diagnose(setup: Setup, log=None) -> dict:
         allv, per_fold, ci = _fit(study, base, cand, wfit, folds, setup.grid, rng)
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
+        study.prefetch([_merge(base, cand.name, val) for val in per_fold])
         for f, val in enumerate(per_fold):
             Df = study.residual(_merge(base, cand.name, val))
             D_after[folds == f] = Df[folds == f]
