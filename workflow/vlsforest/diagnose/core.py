@@ -359,8 +359,9 @@ class _PlotSim:
         The assignments are grouped by the trace they render from (in order of first
         appearance), so each trace is made once; the renders of one trace run in forked worker
         processes (at most ``workers``), which share the trace's hits with the parent and send
-        back only the observables. A render depends only on its assignment and the seed: the
-        observables are the same in any order and any number of workers.
+        back only the observables; a trace with fewer renders than workers has them rendered in
+        a forked process beside the next trace. A render depends only on its assignment and the
+        seed: the observables are the same in any order and any number of workers.
         """
         groups: dict = {}
         pending = set()
@@ -371,11 +372,29 @@ class _PlotSim:
             pending.add(key)
             part = _trace_part(a)
             groups.setdefault(self._key(part)[0], (part, []))[1].append((key, sv, edits))
-        for part, jobs in groups.values():
-            pulses, hits = self._trace(part)
-            for (key, _, _), f in zip(jobs, self._render_all(jobs, pulses, hits)):
-                self._sims[key] = f
-            self.n_redetected += len(jobs)
+        todo = list(groups.values())
+        behind = None  # the renders of the previous trace, running in a forked process beside this trace
+        try:
+            for i, (part, jobs) in enumerate(todo):
+                pulses, hits = self._trace(part)
+                if behind is not None:
+                    self._store(*behind.result())
+                    behind = None
+                if 1 < self.workers and len(jobs) < self.workers and i + 1 < len(todo):
+                    # too few renders to fill the workers: they run beside the next trace, whose
+                    # workers leave part of the cores idle (the parent gathers their hits)
+                    behind = _Behind(self, jobs, pulses, hits)
+                else:
+                    self._store(jobs, self._render_all(jobs, pulses, hits))
+                del pulses, hits
+        finally:
+            if behind is not None:
+                behind.cancel()
+
+    def _store(self, jobs: list, features: list) -> None:
+        for (key, _, _), f in zip(jobs, features):
+            self._sims[key] = f
+        self.n_redetected += len(jobs)
 
     def _render(self, pulses: dict, hits: dict, sv, edits: dict) -> pd.DataFrame:
         """Re-detect stored hits with the survey ``sv`` and scene edits ``edits``; the observables."""
@@ -413,6 +432,56 @@ def _render_job(i: int) -> pd.DataFrame:
     ps, jobs, pulses, hits = _RENDER
     _, sv, edits = jobs[i]
     return ps._render(pulses, hits, sv, edits)
+
+
+class _Behind:
+    """The renders of one trace in a forked process while the parent goes on (to the next trace).
+
+    The child shares the trace's hits with the parent (copy on write: the parent may drop
+    them) and sends back only the observables, through a pipe; no thread is started in the
+    parent, which forks its tracing workers next.
+    """
+
+    def __init__(self, ps: _PlotSim, jobs: list, pulses: dict, hits: dict):
+        global _RENDER
+        ctx = mp.get_context("fork")
+        self.jobs = jobs
+        self._conn, child = ctx.Pipe(duplex=False)
+        _RENDER = (ps, jobs, pulses, hits)
+        try:
+            self._proc = ctx.Process(target=_render_behind, args=(child,), daemon=True)
+            self._proc.start()
+        finally:
+            _RENDER = None
+            child.close()
+
+    def result(self) -> tuple[list, list]:
+        """Wait for the renders; ``(jobs, observables)``."""
+        try:
+            ok, out = self._conn.recv()
+        except EOFError:
+            ok, out = False, "the process died (out of memory?); try fewer workers ('workers: 1' in the sim config)"
+        finally:
+            self._conn.close()
+            self._proc.join()
+        if not ok:
+            raise VlsforestError(f"a diagnosis render beside a trace failed: {out}")
+        return self.jobs, out
+
+    def cancel(self) -> None:
+        self._proc.kill()
+        self._proc.join()
+        self._conn.close()
+
+
+def _render_behind(conn) -> None:
+    ps, jobs, pulses, hits = _RENDER
+    try:
+        out = (True, [ps._render(pulses, hits, sv, edits) for _, sv, edits in jobs])
+    except Exception as e:  # noqa: BLE001 — reported by the parent as one error
+        out = (False, f"{type(e).__name__}: {e}")
+    conn.send(out)
+    conn.close()
 
 
 class _Study:
