@@ -5,13 +5,12 @@ detection candidates from them; this measures, for one plot of a workflow run's 
 set-up (real observables), the trace of the simulation as given (time, sub-ray hits, memory held
 after it), and one evaluation from stored hits (re-detection + observables), with the same
 inputs the ``diagnose`` rule passes (scaled method, the scenario's extraction radius, the
-config's region margin), the split of that evaluation into re-detection and observables, and
-a batch of renders of the trace one by one against the forked workers the diagnosis uses.
+config's region margin), and the split of that evaluation into re-detection and observables.
 
     python benchmarks/bench_diagnose_trace.py /path/to/study --plot P3 --scenario uls
 
 ``/path/to/study`` is a workflow directory after ``snakemake`` (``results/`` inside, default
-config). About 5 min for P3 of the default forest on 2 cores.
+config). About 3 min for P3 of the default forest on 2 cores.
 """
 
 from __future__ import annotations
@@ -44,7 +43,6 @@ def main(argv=None) -> int:
     ap.add_argument("--radius", type=float, default=None, help="extraction radius (default: 0.3 ULS, 0.5 ALS)")
     ap.add_argument("--margin", type=float, default=1.0, help="region margin (config diagnosis.region_margin_m)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--batch", type=int, default=4, help="renders of one trace timed one by one and in workers")
     a = ap.parse_args(argv)
 
     from vlsforest.diagnose import core
@@ -79,7 +77,7 @@ def main(argv=None) -> int:
     from vlsforest.diagnose.features import cloud_arrays
     from vlsforest.sim import redetect
 
-    _, sv, edits = ps._key({"range_noise": {"sigma_m": 0.02}})
+    _, sv, _ = ps._key({"range_noise": {"sigma_m": 0.02}})
     t0 = time.perf_counter()
     res = redetect(ps._parts, pulses, hits, sv, seed=ps.seed)
     t1 = time.perf_counter()
@@ -87,25 +85,7 @@ def main(argv=None) -> int:
     t2 = time.perf_counter()
     print(f"  re-detection {t1 - t0:.1f} s ({len(res.points['xyz']):,} points), observables {t2 - t1:.1f} s")
     del res
-    # a batch of renders of one trace (as the search asks for them): one by one in this process,
-    # then in forked workers (the diagnosis' way); the observables must be equal
-    batch = [{"range_noise": {"sigma_m": 0.01 * (k + 1)}} for k in range(a.batch)]
-    keys = [ps._key(b)[0] for b in batch]
-    workers = ps.workers
-    ps.workers = 1
-    t0 = time.perf_counter()
-    serial = [ps.features(b) for b in batch]
-    ts = time.perf_counter() - t0
-    for k in keys:
-        del ps._sims[k]
-    ps.workers = workers
-    t0 = time.perf_counter()
-    ps.prefetch(batch)
-    tp = time.perf_counter() - t0
-    same = all(ps.features(b).equals(f) for b, f in zip(batch, serial))
-    print(f"{a.batch} renders of the trace: {ts:.1f} s one by one, {tp:.1f} s in {workers} forked workers "
-          f"(ratio {ts / tp:.2f}; observables {'equal' if same else 'DIFFERENT'}); peak {_peak_gb():.2f} GB")
-    return 0 if same else 1
+    return 0
 
 
 if __name__ == "__main__":

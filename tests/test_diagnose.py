@@ -381,45 +381,6 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
     assert (ps.trees.x - reach).min() >= r0[0] - 1e-9 and (ps.trees.y + reach).max() <= r0[3] + 1e-9
 
 
-def test_renders_in_forked_workers_equal_serial_renders(quick_run, monkeypatch):
-    # the search asks for several simulations at a time (candidate steps, grid values, held-out
-    # folds): the renders of one trace run in forked workers, a lone render of a trace runs in
-    # a forked process beside the next trace; both send back only the observables, which must
-    # equal the renders made one by one in the parent
-    from vlsforest.diagnose import core
-
-    workdir, _, _ = quick_run
-    res = workdir / "results" / "Q1"
-    p = core.PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
-                       res / "scaled" / "scene" / "scene.yaml", res / "surveys" / "uls.yaml", res / "segment", 0.3, 1.0)
-    ps = core._PlotSim(p, 0, 1, lambda m: None)
-    div = lambda v: {"beam_divergence": {"scale": v}}  # noqa: E731
-    assigns = [{}, {"range_noise": {"sigma_m": 0.05}}, {"detection_threshold": {"min_energy": 3e4}},
-               {"max_returns": {"n": 2}}, div(1.5), div(2.0)]
-    ps.pin({})
-    serial = [ps.features(a) for a in assigns]
-    assert ps.n_traced == 3 and ps.n_redetected == 6
-    ps._sims.clear()
-    ps._traces = {k: v for k, v in ps._traces.items() if k == ps._pinned}  # the divergence traces are made again
-    ps.workers = 2
-    behind, real = [], core._Behind
-
-    def spy(plot_sim, jobs, pulses, hits):
-        behind.append(len(jobs))
-        return real(plot_sim, jobs, pulses, hits)
-
-    monkeypatch.setattr(core, "_Behind", spy)
-    ps.prefetch(assigns + [{"range_noise": {"sigma_m": 0.05}}])  # a repeat is rendered once
-    assert ps.n_traced == 5 and ps.n_redetected == 12 and core._RENDER is None
-    assert behind == [1]  # scale 1.5 rendered beside the trace of scale 2
-    for a, f in zip(assigns, serial):
-        pd.testing.assert_frame_equal(ps.features(a), f)
-    assert ps.n_redetected == 12  # read from the cache
-    # the settings change the observables (the comparison is not between identical renders)
-    for k in (2, 3, 4):
-        assert not serial[0].equals(serial[k])
-
-
 def test_library_reads_baselines_and_applies_values():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
     c = lib.CANDIDATES
@@ -628,9 +589,6 @@ class _LinearStudy:
 
     def pin(self, assign):
         self.pinned = json.loads(json.dumps(assign))  # the search's current baseline
-
-    def prefetch(self, assigns):
-        pass  # the linear responses are computed when asked for
 
     def residual(self, assign):
         return (self.real - self.sim(assign)).to_numpy(float)

@@ -389,3 +389,48 @@ def diagnosis_param(wildcards):
         },
     }
     return json.dumps({k: v for k, v in setup.items() if v is not None}, sort_keys=True)
+
+
+# ------------------------------------------------------------------------ scheduler workaround
+def _one_pending_reevaluation():
+    """Keep at most one pending scheduler re-evaluation timer (a Snakemake 9 cost, not a result).
+
+    With its default ``--max-jobs-per-timespan 100/1s``, Snakemake's job scheduler ends every
+    scheduling pass by starting a 1 s timer whose firing triggers another pass, which starts the
+    next timer. Every pass triggered by a job's start or end therefore begins one more such
+    chain: near the end of a run of N jobs the scheduler makes about N passes a second, each
+    re-evaluating the params and resources of every ready job (the default study: 27 CPU-min of
+    the main process in 80 min, beside jobs that need both cores; about 700,000 timer threads).
+    One pending timer keeps what the timer is for — a pass within the timespan after any pass,
+    so a rate-limited job still starts — and the chains no longer pile up. Applied only to a
+    scheduler that has the method; a no-op otherwise.
+    """
+    import threading
+
+    try:
+        from snakemake.scheduling.job_scheduler import JobScheduler
+    except ImportError:
+        return
+    if not hasattr(JobScheduler, "_schedule_reevalutation") or getattr(
+        JobScheduler._schedule_reevalutation, "one_pending", False
+    ):
+        return
+
+    def _schedule_reevalutation(self, delay):
+        if getattr(self, "_vlsforest_reevaluation", None) is not None:
+            return  # a pass is already due within the timespan
+
+        def fire():
+            self._vlsforest_reevaluation = None  # before the pass it triggers asks for the next
+            self._open_jobs.release()
+
+        timer = threading.Timer(delay, fire)
+        timer.daemon = True
+        self._vlsforest_reevaluation = timer
+        timer.start()
+
+    _schedule_reevalutation.one_pending = True
+    JobScheduler._schedule_reevalutation = _schedule_reevalutation
+
+
+_one_pending_reevaluation()

@@ -34,11 +34,8 @@ Steps (see the README section "Diagnosis"):
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,7 +47,7 @@ from vlsforest.diagnose import library as lib
 from vlsforest.diagnose import stats as st
 from vlsforest.diagnose.features import (FEATURES, GROUND_PAD_M, STRATUM, cloud_arrays, tree_features, tree_labeller,
                                          tree_table)
-from vlsforest.errors import ConfigError, InputDataError, VlsforestError
+from vlsforest.errors import ConfigError, InputDataError
 
 ALPHA = 0.05
 PENALTY = 0.05          # explained-fraction penalty per parameter
@@ -349,139 +346,20 @@ class _PlotSim:
         self._pinned = self._key(_trace_part(assign))[0]
 
     def features(self, assign: dict) -> pd.DataFrame:
-        """The observables of the simulation with ``assign`` (cached)."""
-        self.prefetch([assign])
-        return self._sims[self._key(assign)[0]]
-
-    def prefetch(self, assigns: list) -> None:
-        """Simulate every assignment of ``assigns`` not cached yet and cache its observables.
-
-        The assignments are grouped by the trace they render from (in order of first
-        appearance), so each trace is made once; the renders of one trace run in forked worker
-        processes (at most ``workers``), which share the trace's hits with the parent and send
-        back only the observables; a trace with fewer renders than workers has them rendered in
-        a forked process beside the next trace. A render depends only on its assignment and the
-        seed: the observables are the same in any order and any number of workers.
-        """
-        groups: dict = {}
-        pending = set()
-        for a in assigns:
-            key, sv, edits = self._key(a)
-            if key in self._sims or key in pending:
-                continue
-            pending.add(key)
-            part = _trace_part(a)
-            groups.setdefault(self._key(part)[0], (part, []))[1].append((key, sv, edits))
-        todo = list(groups.values())
-        behind = None  # the renders of the previous trace, running in a forked process beside this trace
-        try:
-            for i, (part, jobs) in enumerate(todo):
-                pulses, hits = self._trace(part)
-                if behind is not None:
-                    self._store(*behind.result())
-                    behind = None
-                if 1 < self.workers and len(jobs) < self.workers and i + 1 < len(todo):
-                    # too few renders to fill the workers: they run beside the next trace, whose
-                    # workers leave part of the cores idle (the parent gathers their hits)
-                    behind = _Behind(self, jobs, pulses, hits)
-                else:
-                    self._store(jobs, self._render_all(jobs, pulses, hits))
-                del pulses, hits
-        finally:
-            if behind is not None:
-                behind.cancel()
-
-    def _store(self, jobs: list, features: list) -> None:
-        for (key, _, _), f in zip(jobs, features):
-            self._sims[key] = f
-        self.n_redetected += len(jobs)
-
-    def _render(self, pulses: dict, hits: dict, sv, edits: dict) -> pd.DataFrame:
-        """Re-detect stored hits with the survey ``sv`` and scene edits ``edits``; the observables."""
         from vlsforest.sim import redetect
 
-        parts = dict(self._parts, reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
-        if "specularity" in edits:
-            parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
-            parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
-        res = redetect(parts, pulses, hits, sv, seed=self.seed)
-        return self._features(cloud_arrays(res))
-
-    def _render_all(self, jobs: list, pulses: dict, hits: dict) -> list:
-        """:meth:`_render` of every ``(key, survey, edits)`` of ``jobs`` on one trace, in job order."""
-        global _RENDER
-        n = min(self.workers, len(jobs))
-        if n <= 1:
-            return [self._render(pulses, hits, sv, edits) for _, sv, edits in jobs]
-        _RENDER = (self, jobs, pulses, hits)
-        try:
-            with ProcessPoolExecutor(n, mp_context=mp.get_context("fork")) as pool:
-                return list(pool.map(_render_job, range(len(jobs))))
-        except BrokenProcessPool:
-            raise VlsforestError("a diagnosis render worker died (out of memory?); try fewer workers "
-                                 "('workers: 1' in the sim config)") from None
-        finally:
-            _RENDER = None
-
-
-#: what forked render workers read: (plot simulation, jobs, pulses, hits); set only while they run
-_RENDER = None
-
-
-def _render_job(i: int) -> pd.DataFrame:
-    ps, jobs, pulses, hits = _RENDER
-    _, sv, edits = jobs[i]
-    return ps._render(pulses, hits, sv, edits)
-
-
-class _Behind:
-    """The renders of one trace in a forked process while the parent goes on (to the next trace).
-
-    The child shares the trace's hits with the parent (copy on write: the parent may drop
-    them) and sends back only the observables, through a pipe; no thread is started in the
-    parent, which forks its tracing workers next.
-    """
-
-    def __init__(self, ps: _PlotSim, jobs: list, pulses: dict, hits: dict):
-        global _RENDER
-        ctx = mp.get_context("fork")
-        self.jobs = jobs
-        self._conn, child = ctx.Pipe(duplex=False)
-        _RENDER = (ps, jobs, pulses, hits)
-        try:
-            self._proc = ctx.Process(target=_render_behind, args=(child,), daemon=True)
-            self._proc.start()
-        finally:
-            _RENDER = None
-            child.close()
-
-    def result(self) -> tuple[list, list]:
-        """Wait for the renders; ``(jobs, observables)``."""
-        try:
-            ok, out = self._conn.recv()
-        except EOFError:
-            ok, out = False, "the process died (out of memory?); try fewer workers ('workers: 1' in the sim config)"
-        finally:
-            self._conn.close()
-            self._proc.join()
-        if not ok:
-            raise VlsforestError(f"a diagnosis render beside a trace failed: {out}")
-        return self.jobs, out
-
-    def cancel(self) -> None:
-        self._proc.kill()
-        self._proc.join()
-        self._conn.close()
-
-
-def _render_behind(conn) -> None:
-    ps, jobs, pulses, hits = _RENDER
-    try:
-        out = (True, [ps._render(pulses, hits, sv, edits) for _, sv, edits in jobs])
-    except Exception as e:  # noqa: BLE001 — reported by the parent as one error
-        out = (False, f"{type(e).__name__}: {e}")
-    conn.send(out)
-    conn.close()
+        key, sv, edits = self._key(assign)
+        if key not in self._sims:
+            pulses, hits = self._trace(_trace_part(assign))
+            parts = dict(self._parts,
+                         reflectance=np.clip(self._parts["reflectance"] * edits["reflectance_scale"], 0, 1))
+            if "specularity" in edits:
+                parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
+                parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
+            res = redetect(parts, pulses, hits, sv, seed=self.seed)
+            self.n_redetected += 1
+            self._sims[key] = self._features(cloud_arrays(res))
+        return self._sims[key]
 
 
 class _Study:
@@ -496,12 +374,6 @@ class _Study:
         """Keep the traces of ``assign`` (the search's current baseline) cached in every plot."""
         for p in self.plots:
             p.pin(assign)
-
-    def prefetch(self, assigns: list) -> None:
-        """Simulate the assignments not cached yet, a trace's renders in parallel (see
-        :meth:`_PlotSim.prefetch`); :meth:`sim` then reads them from the cache."""
-        for p in self.plots:
-            p.prefetch(assigns)
 
     def sim(self, assign: dict) -> pd.DataFrame:
         key = json.dumps(assign, sort_keys=True)
@@ -559,14 +431,13 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
             return st.project_whitened(r, J, ww, sd, R)
     else:
         project = st.project
-    steps = [(c, base.get(c.name, c.baseline(study.survey))) for c in cands]
-    steps = [(c, cur, c.step(cur, study.survey)) for c, cur in steps]
-    study.prefetch([base] + [_merge(base, c.name, pert) for c, _, pert in steps])
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
     rows, sigs = [], {}
-    for c, cur, pert in steps:
+    for c in cands:
+        cur = base.get(c.name, c.baseline(study.survey))
         p0 = c.params[0]
         lo = c.bounds(study.survey)[p0.name][0]
+        pert = c.step(cur, study.survey)
         S1 = study.sim(_merge(base, c.name, pert)).reindex(study.real.index).to_numpy(float)
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J
@@ -632,9 +503,11 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     for par in cand.params:
         lo, hi = bounds[par.name]
         g = _grid(par, lo, hi, cur[par.name], n_grid if par is cand.params[0] else max(n_grid - 2, 3))
-        grid = [_merge(base, cand.name, dict(allv, **{par.name: float(v)})) for v in g]
-        study.prefetch(grid)
-        Ds = [study.residual(a) for a in grid]
+        Ds = []
+        for v in g:
+            val = dict(allv)
+            val[par.name] = float(v)
+            Ds.append(study.residual(_merge(base, cand.name, val)))
         curves[par.name] = (g, Ds)
         lg = par.log and lo > 0
         allv[par.name] = st.robust_fit(g, Ds, w, lo, hi, lg)
@@ -718,7 +591,6 @@ def diagnose(setup: Setup, log=None) -> dict:
         allv, per_fold, ci = _fit(study, base, cand, wfit, folds, setup.grid, rng)
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
-        study.prefetch([_merge(base, cand.name, val) for val in per_fold])
         for f, val in enumerate(per_fold):
             Df = study.residual(_merge(base, cand.name, val))
             D_after[folds == f] = Df[folds == f]
