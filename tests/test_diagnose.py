@@ -348,6 +348,8 @@ def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
     cfg.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": 5,
                                    "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
     assert load_setup(cfg, real_dir=tmp_path).beam_sample_quality == 5
+    # no margin given: the one default (the workflow leaves it out when its config does)
+    assert load_setup(cfg, real_dir=tmp_path).plots[0].margin == 1.0
 
 
 # ------------------------------------------------------------------------------------ library
@@ -537,6 +539,12 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
     proc = snakemake_cli("-n", "-p", "--configfile", path, cwd=tmp_path)
     assert proc.returncode == 0 and '"beam_sample_quality": 5' in proc.stdout + proc.stderr, proc.stdout[-3000:]
     assert '"margin": 2.5' in proc.stdout + proc.stderr
+    # without region_margin_m the sim-config names no margin: the library's default applies
+    del fine["diagnosis"]["region_margin_m"]
+    path.write_text(yaml.safe_dump(fine))
+    proc = snakemake_cli("-n", "-p", "--configfile", path, cwd=tmp_path)
+    assert proc.returncode == 0 and '"beam_sample_quality": 5' in proc.stdout + proc.stderr, proc.stdout[-3000:]
+    assert '"margin"' not in proc.stdout + proc.stderr
     # config/no-diagnosis.yaml merged over a config with the diagnosis on leaves only that job out
     cfg["diagnosis"] = {"enabled": True, "method": "scaled", "scenarios": ["uls"], "folds": 3}
     path.write_text(yaml.safe_dump(cfg))

@@ -55,6 +55,9 @@ TIE_MARGIN = 0.10       # scores closer than this tie within a group
 TIE_RESOLVE = 0.05      # a tie is broken only if the separating observables differ by this much
 MIN_EV = 0.05           # a candidate must explain at least this share of the mean residual
 #                         (the reconstruction error of the voxel model is always there beside it)
+#: default of a plot's ``margin`` (m): the diagnosis traces the pulses that enter the trees'
+#: observed region ± this; the workflow's ``diagnosis.region_margin_m`` falls back to it too
+REGION_MARGIN_M = 1.0
 
 
 @dataclass
@@ -67,7 +70,7 @@ class PlotInput:
     survey: Path
     segment: Path
     radius: float
-    margin: float = 5.0
+    margin: float = REGION_MARGIN_M
 
 
 @dataclass
@@ -119,7 +122,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
             radius: 0.3               # extraction radius around the TLS tree points (m)
             margin: 1                 # pulses are traced where they enter the observed region
                                       # (the trees' points ± radius and the ground columns under
-                                      # their crowns) ± this (m; default 5)
+                                      # their crowns) ± this (m; default 1,
+                                      # :data:`REGION_MARGIN_M`)
 
     Relative paths are taken from the current directory.
     """
@@ -162,7 +166,7 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         r = p["radius"]
         if isinstance(r, bool) or not isinstance(r, (int, float)) or not r > 0:
             raise ConfigError(f"{path}: plots.{name}.radius must be > 0, got {r!r}")
-        m = p.get("margin", 5.0)
+        m = p.get("margin", REGION_MARGIN_M)
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not m >= 0:
             raise ConfigError(f"{path}: plots.{name}.margin must be a number ≥ 0 (m), got {m!r}")
         out.append(PlotInput(str(name), Path(real), Path(p["scene"]), Path(p["survey"]), Path(p["segment"]),
