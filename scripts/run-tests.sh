@@ -9,7 +9,8 @@ cd "$ROOT"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
 set +e
-.venv/bin/python -m pytest -q -p no:cacheprovider "${MARK[@]}" "$@"
+# --durations: the slowest tests at the end of the log (the suite must stay near 20 min on 2 cores)
+.venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 "${MARK[@]}" "$@"
 rc=$?
 set -e
 [ $rc -eq 5 ] && { echo "run-tests: pytest collected no tests — failing" >&2; exit 1; }

@@ -99,3 +99,15 @@ def test_detect_rejects_non_hits_file(tmp_path, capsys):
     (tmp_path / "s.yaml").write_text("scanner: riegl_vq780i\nplatform: {speed_mps: 1, legs: [{start: [0,0,1], end: [0,1,1]}]}\n")
     rc = main(["detect", str(tmp_path / "x.npz"), str(tmp_path / "s.yaml"), "-o", str(tmp_path / "o.laz")])
     assert rc == 2 and "x.npz" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("margin", ["-1", "nan"])
+def test_negative_region_margin_exit_2(demo, capsys, margin):
+    site = demo / "site.json"
+    site.write_text('{"targets_extent": [-5, -5, 5, 5]}')
+    out = demo / "m.laz"
+    rc = main(["simulate", str(demo / "scene" / "scene.yaml"), str(demo / "survey.yaml"), "-o", str(out),
+               "--quiet", "--region-from", str(site), "--region-margin", margin])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--region-margin must be ≥ 0" in err and "Traceback" not in err
+    assert not out.exists()

@@ -454,6 +454,40 @@ def test_every_study_method_simulates_on_the_quick_plot(quick_run, tmp_path):
         assert counts[name] <= counts["fixed_0.25"]
 
 
+@pytest.mark.parametrize("scenario", ["uls", "als"])
+def test_one_metre_region_margin_keeps_every_target_return(quick_run, scenario):
+    """The simulations trace only pulses whose beam reaches the targets' extent ±
+    `simulation.region_margin_m` (default 1 m). The target clouds are taken by object id, and a
+    target's voxels and stem lie within its TLS points ± one cell, so with 1 m the target points
+    are those of a trace 10 m wider, bit for bit (the quick surveys draw no noise), from fewer
+    traced sub-rays. Checked on the coarsest fixed cells (0.25 m), which reach furthest beyond
+    the points."""
+    from vlsforest.scene import object_ids
+    from vlsforest.sim import Scene, load_survey, simulate
+
+    workdir, _, _ = quick_run
+    plot = workdir / "results" / "Q1"
+    assert _load(DEFAULT)["simulation"]["region_margin_m"] == 1
+    x0, y0, x1, y1 = json.loads((plot / "site.json").read_text())["targets_extent"]
+    targets = pd.read_csv(plot / "targets.csv")
+    ids = np.array(sorted(o for t in targets.tree_id for o in object_ids(int(t))))
+    scene = Scene.from_yaml(plot / "fixed_0.25" / "scene" / "scene.yaml")
+    survey = load_survey(plot / "surveys" / f"{scenario}.yaml")
+    runs = {}
+    for m in (10.0, 1.0):
+        res = simulate(scene, survey, workers=2, progress=False, keep_pulses=False,
+                       region=[x0 - m, y0 - m, x1 + m, y1 + m])
+        keep = np.isin(res.points["object_id"], ids)
+        runs[m] = ({k: np.asarray(v)[keep] for k, v in res.points.items()}, res.timings["n_rays"])
+    (wide, rays_wide), (near, rays_near) = runs[10.0], runs[1.0]
+    assert len(wide["xyz"]) > 1000
+    assert set(np.unique(wide["object_id"])) >= {object_ids(int(t))[1] for t in targets.tree_id}
+    assert wide.keys() == near.keys()
+    for k in wide:
+        np.testing.assert_array_equal(wide[k], near[k], err_msg=k)
+    assert rays_near < 0.8 * rays_wide, (rays_near, rays_wide)
+
+
 def test_report_html_embeds_every_figure_with_data(quick_run, tmp_path):
     """`snakemake --report` writes one self-contained HTML; every PNG the workflow marks for the
     report is embedded as a data URI that decodes to a non-blank image, and the tables are in it

@@ -22,7 +22,8 @@ def register(sub) -> None:
                    help="trace only pulses whose beam reaches this horizontal box (others are emitted, no returns)")
     p.add_argument("--region-from", default=None, metavar="SITE.json",
                    help="region = the 'targets_extent' of a site.json (vlsforest scene targets) widened by --region-margin")
-    p.add_argument("--region-margin", type=float, default=10.0, help="margin around the targets (m, default 10)")
+    p.add_argument("--region-margin", type=float, default=1.0,
+                   help="margin around the targets (m, default 1: the workflow's simulation.region_margin_m)")
     p.set_defaults(func=run)
 
 
@@ -30,6 +31,10 @@ def run(args) -> int:
     """Execute ``vlsforest simulate``."""
     from vlsforest.sim import Scene, load_survey, save_hits, simulate, write_points, write_pulses
 
+    if not args.region_margin >= 0:
+        from vlsforest.errors import ConfigError
+
+        raise ConfigError(f"--region-margin must be ≥ 0 (m), got {args.region_margin}")
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     region = args.region
