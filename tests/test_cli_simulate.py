@@ -111,3 +111,22 @@ def test_negative_region_margin_exit_2(demo, capsys, margin):
     err = capsys.readouterr().err
     assert rc == 2 and "--region-margin must be ≥ 0" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_region_margin_is_widened_to_the_scene_cells(demo, capsys, tmp_path):
+    # the demo crowns are 0.25 m cells: a margin below their diagonal (0.354 m) would cut the
+    # outermost cells of a target, so it is widened (and said so); a wider one is kept
+    site = demo / "site.json"
+    site.write_text('{"targets_extent": [-5, -5, 5, 5]}')
+    args = [str(demo / "scene" / "scene.yaml"), str(demo / "survey.yaml"), "--quiet", "--workers", "1",
+            "--region-from", str(site)]
+    outs = {}
+    for m in ("0", "0.354", "1"):
+        outs[m] = demo / f"r{m}.laz"
+        assert main(["simulate", *args, "--region-margin", m, "-o", str(outs[m])]) == 0
+        err = capsys.readouterr().err
+        assert ("region margin widened from 0 to 0.354 m" in err) == (m == "0"), err
+    # widened to the diagonal: the same region (to the rounding of the printed value) as asked for it
+    a, b = laspy.read(outs["0"]), laspy.read(outs["0.354"])
+    assert len(a.points) == len(b.points) > 0
+    assert len(laspy.read(outs["1"]).points) >= len(a.points)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 
 
@@ -50,6 +51,13 @@ def run(args) -> int:
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
             raise InputDataError(f"{src}: no 'targets_extent' to take the region from ({exc})") from None
         m = float(args.region_margin)
+        # a target's voxels reach one cell diagonal beyond its TLS points (the extent's source):
+        # a narrower margin would lose returns of the outermost cells
+        reach = math.sqrt(2.0) * scene.max_voxel_size
+        if m < reach:
+            print(f"simulate: region margin widened from {m:g} to {reach:.3f} m (the scene's "
+                  f"{scene.max_voxel_size:g} m cells reach that far beyond the targets' points)", file=sys.stderr)
+            m = reach
         region = [ext[0] - m, ext[1] - m, ext[2] + m, ext[3] + m]
     res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
                    keep_pulses=args.pulses is not None, progress=not args.quiet, region=region)

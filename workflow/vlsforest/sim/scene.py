@@ -363,6 +363,11 @@ class Scene:
         return int(sum(len(s.ijk) if s.half is None else int((s.half > 0).sum()) for s in self._voxelsets))
 
     @property
+    def max_voxel_size(self) -> float:
+        """Side of the largest voxel cell in the scene (m; 0 without voxels)."""
+        return float(max((s.size for s in self._voxelsets), default=0.0))
+
+    @property
     def n_triangles(self) -> int:
         """Number of mesh triangles in the scene."""
         return int(sum(len(m.faces) for m in self._meshes))
