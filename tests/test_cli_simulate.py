@@ -113,7 +113,7 @@ def test_negative_region_margin_exit_2(demo, capsys, margin):
     assert not out.exists()
 
 
-def test_region_margin_is_widened_to_the_scene_cells(demo, capsys, tmp_path):
+def test_region_margin_is_widened_to_the_scene_cells(demo, capsys):
     # the demo crowns are 0.25 m cells: a margin below their diagonal (0.354 m) would cut the
     # outermost cells of a target, so it is widened (and said so); a wider one is kept
     site = demo / "site.json"
