@@ -241,3 +241,28 @@ def test_restyled_scene_shares_geometry_changes_energy():
     assert np.allclose(b.points["amplitude"][on] / a.points["amplitude"][on], 0.25, rtol=1e-5)
     with pytest.raises(ConfigError):
         sc.restyled({99: Material(0.1)})
+
+
+def test_one_worker_traces_the_grid_on_one_cpu(monkeypatch):
+    """``workers=1`` (a one-thread workflow job) runs the voxel-grid kernel without threads, then
+    restores the module's setting; the points equal those of two worker processes."""
+    from vlsforest.sim import _voxelgrid, simulate, survey_from_dict
+
+    sc = Scene(voxel_backend="grid")
+    sc.add_plane(1, 0.0, (-10, -10, 10, 10))
+    ijk = np.array([[i, j, 40] for i in range(-8, 8) for j in range(-8, 8)])
+    sc.add_voxels(2, ijk, [0.0, 0.0, 0.0], 0.25)
+    survey = survey_from_dict({
+        "scanner": "riegl_minivux1uav",
+        "platform": {"type": "linear", "speed_mps": 5.0, "legs": [{"start": [0.1, -1, 30.0], "end": [0.1, 1, 30.0]}]}})
+    two = simulate(sc, survey, seed=1, workers=2, block_slots=2000)
+    kernels = []
+    parallel, serial = _voxelgrid._trace_kernel, _voxelgrid._trace_kernel_serial
+    monkeypatch.setattr(_voxelgrid, "_trace_kernel", lambda *a: (kernels.append("parallel"), parallel(*a))[1])
+    monkeypatch.setattr(_voxelgrid, "_trace_kernel_serial", lambda *a: (kernels.append("serial"), serial(*a))[1])
+    one = simulate(sc, survey, seed=1, workers=1, block_slots=2000)
+    assert kernels and set(kernels) == {"serial"}
+    assert _voxelgrid.SERIAL is False
+    assert (one.points["object_id"] == 2).sum() > 1000
+    for k in ("xyz", "amplitude", "return_number", "object_id"):
+        assert np.array_equal(one.points[k], two.points[k])

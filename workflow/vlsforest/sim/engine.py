@@ -541,11 +541,17 @@ def _run_blocks(job: _Job, workers, progress, t0):
         job.raw_embree = job._raw_embree()
     if hasattr(scene, "prepare"):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking
-    workers = min(workers or os.cpu_count() or 1, max(n_blocks, 1))
+    requested = workers or os.cpu_count() or 1
+    workers = min(requested, max(n_blocks, 1))
     _JOB = job
     pool = None
+    serial_before = None
     try:
         if workers <= 1 or n_blocks <= 1:
+            if requested <= 1:  # one CPU asked for: the voxel-grid kernel runs without threads too
+                from vlsforest.sim import _voxelgrid
+
+                serial_before, _voxelgrid.SERIAL = _voxelgrid.SERIAL, True
             it = map(_run_block, range(n_blocks))
         else:
             _warm_up(job, n_blocks)
@@ -563,6 +569,10 @@ def _run_blocks(job: _Job, workers, progress, t0):
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+        if serial_before is not None:
+            from vlsforest.sim import _voxelgrid
+
+            _voxelgrid.SERIAL = serial_before
         _JOB = None
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
@@ -589,7 +599,8 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     seed : int, optional
         Seed of the range noise; defaults to the survey's ``seed``.
     workers : int, optional
-        Worker processes (default: number of CPUs, at most the number of blocks).
+        Worker processes (default: number of CPUs, at most the number of blocks). With 1 the
+        survey runs in this process on one CPU (the voxel-grid kernel without threads too).
     keep_hits : bool
         Also return every sub-ray hit (for :func:`redetect`).
     keep_pulses : bool
