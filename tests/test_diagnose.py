@@ -598,8 +598,41 @@ class _LinearStudy:
     def pin(self, assign):
         self.pinned = json.loads(json.dumps(assign))  # the search's current baseline
 
+    def has_trace(self, assign):
+        return False
+
     def residual(self, assign):
         return (self.real - self.sim(assign)).to_numpy(float)
+
+
+class _TracingStudy(_LinearStudy):
+    """:class:`_LinearStudy` with the real study's trace cache: simulations are cached per
+    assignment; a trace is held for the pinned baseline and for the last other trace-side
+    assignment, and every other trace-side assignment costs a new trace."""
+
+    def __init__(self, *args, cached_first=True, **kw):
+        super().__init__(*args, **kw)
+        self.cached_first, self.last, self.sims, self.traces = cached_first, None, {}, []
+
+    def _held(self, assign):
+        from vlsforest.diagnose.core import _trace_part
+
+        tp = json.dumps(_trace_part(assign), sort_keys=True)
+        return tp, tp in (json.dumps(_trace_part(self.pinned), sort_keys=True), self.last)
+
+    def has_trace(self, assign):
+        return self.cached_first and self._held(assign)[1]
+
+    def sim(self, assign):
+        key = json.dumps(assign, sort_keys=True)
+        if key not in self.sims:
+            tp, held = self._held(assign)
+            if not held:
+                self.n_traced += 1
+                self.traces.append(tp)
+                self.last = tp
+            self.sims[key] = super().sim(assign)
+        return self.sims[key]
 
 
 def _run_logic(monkeypatch, study, seed=0):
@@ -623,6 +656,24 @@ def test_logic_finds_and_fits_a_hidden_effect_beside_reconstruction_error(monkey
     fit = rep["effects"][0]
     assert fit["name"] == name and fit["parameters"][key] == pytest.approx(values[key], rel=0.2)
     assert fit["heldout_error_after"] < fit["heldout_error_before"] and fit["p_value"] < 0.05
+
+
+def test_a_held_trace_is_rendered_before_it_is_evicted(monkeypatch):
+    """Second round (after a detection-side effect): the trace-side candidate traced last in the
+    first round is still held, so it is simulated first instead of being traced again after the
+    others evicted it. One trace fewer, the same report."""
+    hidden = {"detection_threshold": {"min_energy": 12000.0}, "beam_divergence": {"scale": 1.8}}
+    old = _TracingStudy(hidden, cached_first=False)
+    new = _TracingStudy(hidden)
+    a, b = _run_logic(monkeypatch, old), _run_logic(monkeypatch, new)
+    assert a["accepted"][:1] == ["detection_threshold"] and len(a["rounds"]) >= 2
+    # every trace-side candidate of round 1 was traced again in round 2 without the ordering
+    first_round = [t for t in old.traces[:4]]
+    assert all(t != "{}" for t in first_round) and all(t in old.traces[4:] for t in first_round)
+    assert new.n_traced == old.n_traced - 1
+    assert old.traces[3] not in new.traces[4:]  # the held one: not traced again
+    a.pop("cost"), b.pop("cost")
+    assert json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
 
 
 def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(monkeypatch):

@@ -18,9 +18,6 @@ rule diagnose:
     conda:
         "../../envs/vlsforest.yaml"
     threads: 2
-    # the longest job of a run, ready as soon as its plots' scenes are: started before the
-    # simulations, it no longer ends the run on its own
-    priority: 10
     resources:
         mem_mb=12000,
         runtime=60,

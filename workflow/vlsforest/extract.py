@@ -221,10 +221,14 @@ class _TreeLabeller:
             if np.any(thi < lo) or np.any(tlo > hi):
                 continue
             near = columns.box(tlo[0], tlo[1], thi[0], thi[1])
-            cand = near[np.all((xyz[near] >= tlo) & (xyz[near] <= thi), axis=1) & eligible[near]]
+            p = xyz[near]
+            inside = eligible[near]
+            for k in range(3):  # column by column: a reduction along rows of 3 is slow in numpy
+                inside &= (p[:, k] >= tlo[k]) & (p[:, k] <= thi[k])
+            cand = near[inside]
             if len(cand) == 0:
                 continue
-            d, _ = kd.query(xyz[cand], k=1, distance_upper_bound=radius, workers=self.workers)
+            d, _ = kd.query(p[inside], k=1, distance_upper_bound=radius, workers=self.workers)
             better = (d <= radius) & (d < best[cand])
             label[cand[better]] = tid
             best[cand[better]] = d[better]

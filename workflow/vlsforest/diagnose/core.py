@@ -385,6 +385,10 @@ class _Study:
             self._cache[key] = pd.concat([p.features(assign) for p in self.plots])
         return self._cache[key]
 
+    def has_trace(self, assign: dict) -> bool:
+        """Whether every plot holds the ray trace that ``assign`` renders from (no new trace)."""
+        return all(p._key(_trace_part(assign))[0] in p._traces for p in self.plots)
+
     def residual(self, assign: dict) -> np.ndarray:
         s = self.sim(assign).reindex(self.real.index)
         return (self.real - s).to_numpy(float)
@@ -436,12 +440,17 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
     else:
         project = st.project
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
+    steps = {c.name: c.step(base.get(c.name, c.baseline(study.survey)), study.survey) for c in cands}
+    # simulate the candidates whose trace is still held first: a trace-side candidate traced last
+    # in the previous round is not traced again after the others evicted it (same results)
+    for c in sorted(cands, key=lambda c: not study.has_trace(_merge(base, c.name, steps[c.name]))):
+        study.sim(_merge(base, c.name, steps[c.name]))
     rows, sigs = [], {}
     for c in cands:
         cur = base.get(c.name, c.baseline(study.survey))
         p0 = c.params[0]
         lo = c.bounds(study.survey)[p0.name][0]
-        pert = c.step(cur, study.survey)
+        pert = steps[c.name]
         S1 = study.sim(_merge(base, c.name, pert)).reindex(study.real.index).to_numpy(float)
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J

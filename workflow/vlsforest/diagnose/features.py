@@ -227,7 +227,8 @@ def _within(xy, columns, cx, cy, r):
     disc are tested."""
     pad = r + 1e-6 + 1e-12 * max(abs(cx), abs(cy))  # the columns only pre-select: the disc test decides
     near = columns.box(cx - pad, cy - pad, cx + pad, cy + pad)
-    return np.sort(near[np.sum((xy[near] - [cx, cy]) ** 2, axis=1) <= r ** 2])
+    dx, dy = xy[near, 0] - cx, xy[near, 1] - cy
+    return np.sort(near[dx * dx + dy * dy <= r ** 2])
 
 
 def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns=None) -> pd.DataFrame:
