@@ -376,6 +376,57 @@ def test_rerun_from_scratch_is_byte_identical(quick_run, tmp_path):
 # ---------------------------------------------------------------------------------------------
 # cluster profile and lint
 # ---------------------------------------------------------------------------------------------
+def _dry_run_jobs(out: str) -> list[dict]:
+    """The jobs of a dry run's output: rule, wildcards, threads and priority of each."""
+    jobs = []
+    for block in out.split("\nrule ")[1:]:
+        lines = block.splitlines()
+        job = {"rule": lines[0].rstrip(":"), "threads": 1, "priority": None, "wildcards": ""}
+        for line in lines[1:]:
+            key, _, value = line.strip().partition(": ")
+            if key == "threads":
+                job["threads"] = int(value)
+            elif key == "priority":
+                job["priority"] = value
+            elif key == "wildcards":
+                job["wildcards"] = value
+            elif not line.startswith(" "):
+                break
+        jobs.append(job)
+    return jobs
+
+
+def test_local_profile_runs_one_cpu_jobs_side_by_side_and_the_diagnosis_first(tmp_path):
+    """The default (local) profile counts simulations and the diagnosis as one thread each, and
+    gives the diagnosis and exactly the jobs it needs the highest priority; without the
+    diagnosis nothing is prioritized."""
+    proc = _snakemake("-n", "--cores", 2, cwd=tmp_path)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "profiles/default" in out
+    jobs = _dry_run_jobs(out)
+    cfg = _load(DEFAULT)
+    sims = [j for j in jobs if j["rule"] == "simulate"]
+    assert len(sims) == len(cfg["plots"]) * len(cfg["methods"]) * len(cfg["scenarios"])
+    assert {j["threads"] for j in sims} == {1}
+    assert [j["threads"] for j in jobs if j["rule"] == "diagnose"] == [1]
+    assert [j["threads"] for j in jobs if j["rule"] == "synth"] == [2]  # not in set-threads
+    first = {(j["rule"], j["wildcards"]) for j in jobs if j["priority"] == "highest"}
+    d = cfg["diagnosis"]
+    plot, method, scenario = d["plots"][0], d["method"], d["scenarios"][0]
+    assert len(d["plots"]) == 1 and len(d["scenarios"]) == 1
+    assert first == {
+        ("synth", ""), ("segment", f"plot={plot}"), ("targets", f"plot={plot}"), ("stems", f"plot={plot}"),
+        ("crowns", f"plot={plot}"), ("pad_virtual", f"plot={plot}"),
+        ("voxels", f"plot={plot}, method={method}"), ("scene", f"plot={plot}, method={method}"),
+        ("survey", f"plot={plot}, scenario={scenario}"), ("diagnose", f"scenario={scenario}")}
+    proc = _snakemake("-n", "--cores", 2, "--configfile", DEFAULT, REPO / "config" / "no-diagnosis.yaml",
+                      cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    jobs = _dry_run_jobs(proc.stdout + proc.stderr)
+    assert jobs and not any(j["priority"] for j in jobs) and "diagnose" not in {j["rule"] for j in jobs}
+
+
 def test_slurm_profile_dry_run(tmp_path):
     """`-n` with profiles/slurm (executor slurm) plans every job without sbatch. Where conda is
     missing, `--sdm env-modules` switches the profile's conda deployment off (no rule uses
