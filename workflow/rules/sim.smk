@@ -38,8 +38,9 @@ rule simulate:
         "logs/benchmarks/simulate/{plot}_{method}_{scenario}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
-    # capped by --cores locally; on a cluster (no --cores) the profile's set-threads decides.
-    # Not `workflow.cores`: that raises when no --cores is given (cluster runs).
+    # the profiles' set-threads decide: one locally (profiles/default: jobs side by side), 8 on
+    # SLURM; without a profile capped by --cores. Not `workflow.cores`: that raises when no
+    # --cores is given (cluster runs).
     threads: 16
     resources:
         mem_mb=simulate_mem_mb,
