@@ -26,6 +26,7 @@ found with it; ``ring_scale: physical`` is the switch for the nominal beam exten
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -209,6 +210,19 @@ def _init_worker():
     _voxelgrid.SERIAL = True
 
 
+@contextlib.contextmanager
+def _serial_grid():
+    """The voxel-grid kernel without numba threads inside the block, the setting restored after."""
+    from vlsforest.sim import _voxelgrid
+
+    prev = _voxelgrid.SERIAL
+    _voxelgrid.SERIAL = True
+    try:
+        yield
+    finally:
+        _voxelgrid.SERIAL = prev
+
+
 def _run_block(b: int):
     job = _JOB
     start = b * job.block_slots
@@ -236,19 +250,13 @@ def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
     workers' serial code on the first block that traces anything (its result is discarded; the
     workers redo it with the same random stream) and one ray through each voxel grid.
     """
-    from vlsforest.sim import _voxelgrid
-
-    prev = _voxelgrid.SERIAL
-    _voxelgrid.SERIAL = True
-    try:
+    with _serial_grid():
         for b in range(min(n_blocks, max_blocks)):
             if _run_block(b)[3] > 0:
                 break
         for grid in getattr(job.scene, "grids", ()):
             lo, hi = grid.bounds
             grid.trace(np.array([0.5 * (lo + hi) + [0.0, 0.0, hi[2] - lo[2] + 1.0]]), np.array([[0.0, 0.0, -1.0]]))
-    finally:
-        _voxelgrid.SERIAL = prev
 
 
 def _cast(job: _Job, origin, direction, scan_dir):
@@ -545,13 +553,11 @@ def _run_blocks(job: _Job, workers, progress, t0):
     workers = min(requested, max(n_blocks, 1))
     _JOB = job
     pool = None
-    serial_before = None
+    serial = contextlib.ExitStack()
     try:
         if workers <= 1 or n_blocks <= 1:
             if requested <= 1:  # one CPU asked for: the voxel-grid kernel runs without threads too
-                from vlsforest.sim import _voxelgrid
-
-                serial_before, _voxelgrid.SERIAL = _voxelgrid.SERIAL, True
+                serial.enter_context(_serial_grid())
             it = map(_run_block, range(n_blocks))
         else:
             _warm_up(job, n_blocks)
@@ -569,10 +575,7 @@ def _run_blocks(job: _Job, workers, progress, t0):
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
-        if serial_before is not None:
-            from vlsforest.sim import _voxelgrid
-
-            _voxelgrid.SERIAL = serial_before
+        serial.close()
         _JOB = None
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
