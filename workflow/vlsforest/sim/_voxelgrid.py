@@ -440,6 +440,153 @@ def _probe(bid, cx, cy, cz, px, py, pz, dx, dy, dz, ivx, ivy, ivz, tmax, bs, wpb
 
 
 @njit(cache=True, inline="always")
+def _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, bx, by, bz,
+                  tend, nx, ny, nz, bs, nbx, nby, coarse):
+    """Follow the ray through consecutive empty blocks of Chebyshev radius 0.
+
+    Starting in empty block (bx, by, bz), step to the next block while the ray leaves the
+    current one through exactly one face (no tie of block-boundary parameters) into a block
+    that is again empty with radius 0. Returns the last such block and whether the walk goes
+    on (False: the ray ends, ``te > tend``, or leaves the grid on the way).
+
+    The cell-level walk reaches the same cells: in each of these blocks it would jump to the
+    block's exit cell and step across. Its only extra work there is probing the cells that
+    touch the ray where a cell boundary inside the block ties with the exit: those lie in the
+    current or the next block, both empty, so the probes find nothing. The boundary
+    parameters are computed by :func:`_next_t` from the same exit cells, so they are
+    bit-identical to the ones the cell-level jump computes, and the jump out of the last
+    block (settled from the cells before the run, which are not past the ray's cells at
+    the exit) lands where the block-by-block jumps would have.
+    """
+    while True:
+        if dx > 0.0:
+            lx = min(((bx + 1) << bs) - 1, nx - 1)
+        elif dx < 0.0:
+            lx = max(bx << bs, 0)
+        else:
+            lx = cx
+        if dy > 0.0:
+            ly = min(((by + 1) << bs) - 1, ny - 1)
+        elif dy < 0.0:
+            ly = max(by << bs, 0)
+        else:
+            ly = cy
+        if dz > 0.0:
+            lz = min(((bz + 1) << bs) - 1, nz - 1)
+        elif dz < 0.0:
+            lz = max(bz << bs, 0)
+        else:
+            lz = cz
+        tex = _next_t(lx, px, dx, ivx)
+        tey = _next_t(ly, py, dy, ivy)
+        tez = _next_t(lz, pz, dz, ivz)
+        te = min(tex, min(tey, tez))
+        if te > tend:
+            return bx, by, bz, False
+        qx = bx
+        qy = by
+        qz = bz
+        if tex == te:
+            if tey == te or tez == te:
+                return bx, by, bz, True
+            q = lx + sx
+            if q < 0 or q >= nx:
+                return bx, by, bz, False
+            qx = q >> bs
+        elif tey == te:
+            if tez == te:
+                return bx, by, bz, True
+            q = ly + sy
+            if q < 0 or q >= ny:
+                return bx, by, bz, False
+            qy = q >> bs
+        else:
+            q = lz + sz
+            if q < 0 or q >= nz:
+                return bx, by, bz, False
+            qz = q >> bs
+        if coarse[(qz * nby + qy) * nbx + qx] != -1:
+            return bx, by, bz, True
+        bx = qx
+        by = qy
+        bz = qz
+
+
+@njit(cache=True, inline="always")
+def _march_words(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, tend,
+                 nx, ny, nz, bs, bid, wpb, masks):
+    """Follow the ray through consecutive empty 4x4x4 sub-blocks of occupied block ``bid``.
+
+    Starts in the (empty) sub-block of cell (cx, cy, cz); the same as :func:`_march_blocks`
+    one level down, without leaving the block. Returns the last empty sub-block of the run
+    (in sub-block units, i.e. cell >> 2) and whether the walk goes on.
+    """
+    ux = cx >> 2
+    uy = cy >> 2
+    uz = cz >> 2
+    sb = bs - 2
+    sm = (1 << sb) - 1
+    while True:
+        if dx > 0.0:
+            lx = min((ux << 2) + 3, nx - 1)
+        elif dx < 0.0:
+            lx = max(ux << 2, 0)
+        else:
+            lx = cx
+        if dy > 0.0:
+            ly = min((uy << 2) + 3, ny - 1)
+        elif dy < 0.0:
+            ly = max(uy << 2, 0)
+        else:
+            ly = cy
+        if dz > 0.0:
+            lz = min((uz << 2) + 3, nz - 1)
+        elif dz < 0.0:
+            lz = max(uz << 2, 0)
+        else:
+            lz = cz
+        tex = _next_t(lx, px, dx, ivx)
+        tey = _next_t(ly, py, dy, ivy)
+        tez = _next_t(lz, pz, dz, ivz)
+        te = min(tex, min(tey, tez))
+        if te > tend:
+            return ux, uy, uz, False
+        qx = ux
+        qy = uy
+        qz = uz
+        if tex == te:
+            if tey == te or tez == te:
+                return ux, uy, uz, True
+            q = lx + sx
+            if q < 0 or q >= nx:
+                return ux, uy, uz, False
+            if (q >> bs) != (lx >> bs):
+                return ux, uy, uz, True
+            qx = q >> 2
+        elif tey == te:
+            if tez == te:
+                return ux, uy, uz, True
+            q = ly + sy
+            if q < 0 or q >= ny:
+                return ux, uy, uz, False
+            if (q >> bs) != (ly >> bs):
+                return ux, uy, uz, True
+            qy = q >> 2
+        else:
+            q = lz + sz
+            if q < 0 or q >= nz:
+                return ux, uy, uz, False
+            if (q >> bs) != (lz >> bs):
+                return ux, uy, uz, True
+            qz = q >> 2
+        if masks[bid * wpb + (((qz & sm) << (2 * sb)) | ((qy & sm) << sb) | (qx & sm))] != 0:
+            return ux, uy, uz, True
+        ux = qx
+        uy = qy
+        uz = qz
+
+
+@njit(cache=True, inline="always")
 def _walk(px, py, pz, dx, dy, dz, ivx, ivy, ivz, cx, cy, cz, tend, tmax, nx, ny, nz,
           bs, nbx, nby, wpb, coarse, masks, prefix, base, cubes):
     """DDA from the settled start cell. Returns (t, face, voxel); voxel -1 for a miss."""
@@ -457,6 +604,15 @@ def _walk(px, py, pz, dx, dy, dz, ivx, ivy, ivz, cx, cy, cz, tend, tmax, nx, ny,
         if bid < 0:
             # empty block: the cube of blocks within Chebyshev radius r around it is empty
             r = -bid - 1
+            if r == 0:
+                # a run of single empty blocks (radius 0) left through one face each: march
+                # block to block on block-boundary parameters alone; the cells are settled
+                # below only in the last block of the run (see _march_blocks)
+                bx, by, bz, go = _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz,
+                                               sx, sy, sz, cx, cy, cz, bx, by, bz,
+                                               tend, nx, ny, nz, bs, nbx, nby, coarse)
+                if not go:
+                    return np.inf, 0, np.int64(-1)
             xlo = (bx - r) << bs
             xhi = ((bx + r + 1) << bs) - 1
             ylo = (by - r) << bs
@@ -469,12 +625,18 @@ def _walk(px, py, pz, dx, dy, dz, ivx, ivy, ivz, cx, cy, cz, tend, tmax, nx, ny,
             w = bid * wpb + (idx >> 6)
             word = masks[w]
             if word == 0:
-                # empty 4x4x4 sub-block
-                xlo = (cx >> 2) << 2
+                # empty 4x4x4 sub-block; a run of them inside this block is marched through
+                # like a run of empty blocks (see _march_words)
+                ux, uy, uz, go = _march_words(px, py, pz, dx, dy, dz, ivx, ivy, ivz,
+                                              sx, sy, sz, cx, cy, cz, tend, nx, ny, nz,
+                                              bs, bid, wpb, masks)
+                if not go:
+                    return np.inf, 0, np.int64(-1)
+                xlo = ux << 2
                 xhi = xlo + 3
-                ylo = (cy >> 2) << 2
+                ylo = uy << 2
                 yhi = ylo + 3
-                zlo = (cz >> 2) << 2
+                zlo = uz << 2
                 zhi = zlo + 3
                 empty = True
             else:
