@@ -231,3 +231,24 @@ def test_tls_positions_keep_plant_surfaces_out_of_the_minimum_range():
     assert off[0]["position"] == first["position"]
     with pytest.raises(ConfigError, match="tls.head_clearance_m"):
         R.synth_settings({"forest": {"preset": "default"}, "tls": {"head_clearance_m": -1}})
+
+
+def test_plots_recorded_side_by_side_give_the_same_bytes(tmp_path):
+    """With two workers and two plots, the plots are recorded two at a time (each with both
+    workers); the folder must be byte-identical to recording them one after the other."""
+    from vlsforest.synth.forest import QUICK_FOREST
+
+    two = copy.deepcopy(QUICK_FOREST)
+    two["plots"]["Q2"] = {"targets": {"picea_abies": 1}, "area_ha": 0.16, "ground_elevation_m": 250.0}
+    cfg = {"forest": two, "tls": {"n_positions": 1, "step_deg": 1.0, "n_tilted": 0},
+           "recordings": {"uls": {"repeats": 1, "cross_margin_m": 0.0}}}
+    assert R._plot_processes(2, 2) == 2 and R._plot_processes(1, 2) == 1 and R._plot_processes(8, 1) == 1
+    assert R._plot_processes(16, 6) == R.MAX_PLOTS_AT_ONCE
+    one = R.synthesize(cfg, tmp_path / "one", seed=1, physics=CHEAP_PHYSICS, workers=1, quiet=True)
+    both = R.synthesize(cfg, tmp_path / "both", seed=1, physics=CHEAP_PHYSICS, workers=2, quiet=True)
+    assert list(one) == list(both) == ["Q1", "Q2"]
+    files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*") if p.is_file())
+    assert {f.parts[:2] for f in files if f.parts[0] == "plots"} == {("plots", "Q1"), ("plots", "Q2")}
+    assert files == sorted(p.relative_to(tmp_path / "both") for p in (tmp_path / "both").rglob("*") if p.is_file())
+    for f in files:
+        assert (tmp_path / "one" / f).read_bytes() == (tmp_path / "both" / f).read_bytes(), f

@@ -34,8 +34,10 @@ from __future__ import annotations
 
 import copy
 import json
+import multiprocessing
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -562,6 +564,35 @@ def synth_settings(cfg: dict | None) -> dict:
     return {"forest": fc, "tls": tls, "recordings": camp}
 
 
+#: at most this many plots are recorded at once (each holds its leaf-level scene, up to ≈ 4 GB)
+MAX_PLOTS_AT_ONCE = 2
+
+
+def _plot_processes(workers, n_plots: int) -> int:
+    """Number of plots recorded side by side with ``workers`` CPUs (1: one after the other)."""
+    if workers is None or int(workers) < 2 or n_plots < 2:
+        return 1
+    return min(int(workers), n_plots, MAX_PLOTS_AT_ONCE)
+
+
+def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign: dict, seed: int,
+                quiet: bool):
+    """Grow, describe and record one plot; returns its truth table and timings."""
+    from vlsforest.synth.forest import generate_plot_trees, truth_table
+
+    t0 = time.perf_counter()
+    geoms = generate_plot_trees(plot)
+    _log(f"{plot.name}: {len(geoms)} trees, {sum(g.n_triangles for g in geoms.values()):,} triangles "
+         f"({time.perf_counter() - t0:.1f} s)", quiet)
+    write_plot_info(plot, out)
+    write_truth_stems(geoms, plot, out)
+    tt = truth_table([plot], geoms)
+    tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
+    tm = record_plot(plot, geoms, out, physics, tls_cfg, campaign, seed, workers=workers, quiet=quiet)
+    tm["total_s"] = time.perf_counter() - t0
+    return tt, tm
+
+
 def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = None, plots=None,
                workers=None, quiet: bool = False) -> dict:
     """Build the virtual forest and record it (the ``vlsforest synth`` command).
@@ -584,7 +615,7 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     dict
         Timings per plot and stage.
     """
-    from vlsforest.synth.forest import forest_from_config, generate_plot_trees, truth_table
+    from vlsforest.synth.forest import forest_from_config
 
     st = synth_settings(cfg)
     physics = validate_recording_physics(DEFAULT_RECORDING_PHYSICS if physics is None else physics)
@@ -599,21 +630,24 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     (out / "truth").mkdir(parents=True, exist_ok=True)
     (out / "truth" / "recording_physics.yaml").write_text(yaml.safe_dump(physics, sort_keys=True))
     (out / "truth" / "synth_settings.yaml").write_text(yaml.safe_dump({"seed": int(seed), **st}, sort_keys=True))
-    truth, timings = [], {}
-    for plot in layouts:
-        t0 = time.perf_counter()
-        geoms = generate_plot_trees(plot)
-        _log(f"{plot.name}: {len(geoms)} trees, {sum(g.n_triangles for g in geoms.values()):,} triangles "
-             f"({time.perf_counter() - t0:.1f} s)", quiet)
-        write_plot_info(plot, out)
-        write_truth_stems(geoms, plot, out)
-        tt = truth_table([plot], geoms)
-        tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
-        truth.append(tt)
-        tm = record_plot(plot, geoms, out, physics, st["tls"], st["recordings"], seed, workers=workers, quiet=quiet)
-        tm["total_s"] = time.perf_counter() - t0
-        timings[plot.name] = tm
-        del geoms
+    args = (out, physics, st["tls"], st["recordings"], seed, quiet)
+    n_proc = _plot_processes(workers, len(layouts))
+    if n_proc > 1:
+        # two plots at a time, each recorded with all the workers: growing the trees, the TLS
+        # scans and writing the clouds run on one CPU, and while one plot does that the other's
+        # ULS recording takes the idle core (one plot at a time used 159 % of two cores in
+        # session 19). Spawned, not forked: a fork after the caller has built an Embree scene
+        # (whose task threads the child does not inherit) hangs in the child's first build.
+        # The plots are independent (own seeds) and collected in plot order: the same bytes
+        # as one after the other.
+        order = sorted(range(len(layouts)), key=lambda i: -len(layouts[i].trees))  # largest first
+        with ProcessPoolExecutor(n_proc, mp_context=multiprocessing.get_context("spawn")) as pool:
+            jobs = {i: pool.submit(_synth_plot, layouts[i], workers, *args) for i in order}
+            done = [jobs[i].result() for i in range(len(layouts))]
+    else:
+        done = [_synth_plot(plot, workers, *args) for plot in layouts]
+    truth = [tt for tt, _ in done]
+    timings = {plot.name: tm for plot, (_, tm) in zip(layouts, done)}
     table = pd.concat(truth, ignore_index=True)
     table.to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
     return timings
