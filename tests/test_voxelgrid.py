@@ -167,6 +167,44 @@ def test_sparse_clusters_skip_empty_blocks():
     _check(g, np.concatenate([o, o2]), np.concatenate([d, d2]), lo, hi, parts)
 
 
+def test_runs_of_empty_blocks_and_sub_blocks_are_marched_exactly():
+    """Long runs of empty blocks next to occupied ones (Chebyshev radius 0) and runs of empty
+    4x4x4 sub-blocks inside an occupied block, which the DDA marches through on boundary
+    parameters alone: the hits must still be those of brute force, ties included."""
+    rng = np.random.default_rng(11)
+    h = 0.25
+    origin = np.array([1.0, -3.0, 0.5])
+    n = 48  # three 16-cell blocks per axis
+    ii, jj = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    floor = np.stack([ii.ravel(), jj.ravel(), np.zeros(n * n, np.int64)], axis=1)  # z-block 0
+    jw, kw = np.meshgrid(np.arange(n), np.arange(16, 32), indexing="ij")
+    # a wall in the last cell column of x-block 2, z-block 1: blocks (0|1, y, 1) are empty with
+    # radius 0 (the floor lies next to them) and in block (2, y, 1) the first three sub-blocks
+    # along x are empty
+    wall = np.stack([np.full(jw.size, n - 1), jw.ravel(), kw.ravel()], axis=1)
+    extra = _random_cells(rng, 40, (0, 0, 33), (n, n, n), 0.05)
+    ijk = np.unique(np.concatenate([floor, wall, extra]), axis=0)
+    g = VoxelGrid.build(ijk, origin, h, part=1, block_bits=4, keep_source_index=True)
+    assert g.block_bits == 4 and g._coarse.min() == -1
+    lo = origin + ijk * h
+    hi = lo + h
+    parts = np.ones(len(ijk), np.int32)
+    m = 1500
+    # along +x through z-block 1 (straight, slightly tilted, and with exact lattice ties)
+    o = origin + np.column_stack([np.full(m, -3.0), rng.uniform(0, n, m), rng.uniform(16, 32, m)]) * h
+    d = np.column_stack([np.ones(m), rng.normal(0, 0.05, m), rng.normal(0, 0.05, m)])
+    d[: m // 3, 1:] = 0.0
+    ot = origin + np.column_stack([np.full(m, -3.0), rng.integers(0, n + 1, m) * 0.5,
+                                   16 + rng.integers(0, 33, m) * 0.5]) * h
+    dt = np.array([(1.0, 0.0, 0.0), (2.0, 1.0, 0.0), (2.0, 0.0, 1.0), (4.0, 1.0, -1.0),
+                   (1.0, 1.0, 1.0)])[rng.integers(0, 5, m)]
+    hit = _check(g, np.concatenate([o, ot]), np.concatenate([d, dt]), lo, hi, parts, generic=False)
+    assert hit.mean() > 0.5
+    # and from above, down through the empty blocks onto the floor or the wall
+    o, d = _lattice_rays((0, 0, 0), (n, n, n), origin, h, rng, 3000)
+    _check(g, o, d, lo, hi, parts, generic=False)
+
+
 @pytest.mark.parametrize("block_bits", [2, 3])
 def test_full_cells_exact_edges_and_corners(block_bits):
     rng = np.random.default_rng(3)
