@@ -635,7 +635,7 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     if n_proc > 1:
         # two plots at a time, each recorded with all the workers: growing the trees, the TLS
         # scans and writing the clouds run on one CPU, and while one plot does that the other's
-        # ULS recording takes the idle core (one plot at a time used 159 % of two cores in
+        # ULS recording takes the idle core (one plot at a time used 159 % of one core in
         # session 19). Spawned, not forked: a fork after the caller has built an Embree scene
         # (whose task threads the child does not inherit) hangs in the child's first build.
         # The plots are independent (own seeds) and collected in plot order: the same bytes
