@@ -50,6 +50,10 @@ Hit semantics
   tie all tied axes step together and the cells that only touch the ray at that edge/corner are
   tested too. A ray lying in a cell boundary plane (zero direction component) is walked on both
   sides. Empty blocks/sub-blocks are left in one step (jump to the exit cell of the empty box).
+  Runs of empty blocks of Chebyshev radius 0 (next to an occupied block), and runs of empty
+  sub-blocks inside one block, are followed on block/sub-block boundary parameters alone and the
+  cells settled once, at the end of the run; a run ends at any tie (`_march_blocks`,
+  `_march_words`; the same cells are reached, bit for bit).
 * In scaled mode the DDA walks cells and slab-tests the cube of each occupied cell. Cubes lie
   inside their cells and cells are visited in order of entry, so the first cube hit is the
   nearest (ties in ``t`` may resolve to either cube).
