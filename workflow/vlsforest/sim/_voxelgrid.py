@@ -444,6 +444,19 @@ def _probe(bid, cx, cy, cz, px, py, pz, dx, dy, dz, ivx, ivy, ivz, tmax, bs, wpb
 
 
 @njit(cache=True, inline="always")
+def _exit_cell(c, d, lo, hi, n):
+    """Cell along one axis through which the ray leaves the box [lo, hi] (clipped to the grid).
+
+    ``c`` is the current cell, returned unchanged for an axis the ray is parallel to.
+    """
+    if d > 0.0:
+        return min(hi, n - 1)
+    if d < 0.0:
+        return max(lo, 0)
+    return c
+
+
+@njit(cache=True, inline="always")
 def _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, bx, by, bz,
                   tend, nx, ny, nz, bs, nbx, nby, coarse):
     """Follow the ray through consecutive empty blocks of Chebyshev radius 0.
@@ -463,24 +476,9 @@ def _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz,
     the exit) lands where the block-by-block jumps would have.
     """
     while True:
-        if dx > 0.0:
-            lx = min(((bx + 1) << bs) - 1, nx - 1)
-        elif dx < 0.0:
-            lx = max(bx << bs, 0)
-        else:
-            lx = cx
-        if dy > 0.0:
-            ly = min(((by + 1) << bs) - 1, ny - 1)
-        elif dy < 0.0:
-            ly = max(by << bs, 0)
-        else:
-            ly = cy
-        if dz > 0.0:
-            lz = min(((bz + 1) << bs) - 1, nz - 1)
-        elif dz < 0.0:
-            lz = max(bz << bs, 0)
-        else:
-            lz = cz
+        lx = _exit_cell(cx, dx, bx << bs, ((bx + 1) << bs) - 1, nx)
+        ly = _exit_cell(cy, dy, by << bs, ((by + 1) << bs) - 1, ny)
+        lz = _exit_cell(cz, dz, bz << bs, ((bz + 1) << bs) - 1, nz)
         tex = _next_t(lx, px, dx, ivx)
         tey = _next_t(ly, py, dy, ivy)
         tez = _next_t(lz, pz, dz, ivz)
@@ -531,24 +529,9 @@ def _march_words(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, 
     sb = bs - 2
     sm = (1 << sb) - 1
     while True:
-        if dx > 0.0:
-            lx = min((ux << 2) + 3, nx - 1)
-        elif dx < 0.0:
-            lx = max(ux << 2, 0)
-        else:
-            lx = cx
-        if dy > 0.0:
-            ly = min((uy << 2) + 3, ny - 1)
-        elif dy < 0.0:
-            ly = max(uy << 2, 0)
-        else:
-            ly = cy
-        if dz > 0.0:
-            lz = min((uz << 2) + 3, nz - 1)
-        elif dz < 0.0:
-            lz = max(uz << 2, 0)
-        else:
-            lz = cz
+        lx = _exit_cell(cx, dx, ux << 2, (ux << 2) + 3, nx)
+        ly = _exit_cell(cy, dy, uy << 2, (uy << 2) + 3, ny)
+        lz = _exit_cell(cz, dz, uz << 2, (uz << 2) + 3, nz)
         tex = _next_t(lx, px, dx, ivx)
         tey = _next_t(ly, py, dy, ivy)
         tez = _next_t(lz, pz, dz, ivz)
@@ -654,24 +637,9 @@ def _walk(px, py, pz, dx, dy, dz, ivx, ivy, ivz, cx, cy, cz, tend, tmax, nx, ny,
                         return t, f, v
         if empty:
             # jump to the cell in which the ray leaves the empty box [lo, hi]
-            if dx > 0.0:
-                lx = min(xhi, nx - 1)
-            elif dx < 0.0:
-                lx = max(xlo, 0)
-            else:
-                lx = cx
-            if dy > 0.0:
-                ly = min(yhi, ny - 1)
-            elif dy < 0.0:
-                ly = max(ylo, 0)
-            else:
-                ly = cy
-            if dz > 0.0:
-                lz = min(zhi, nz - 1)
-            elif dz < 0.0:
-                lz = max(zlo, 0)
-            else:
-                lz = cz
+            lx = _exit_cell(cx, dx, xlo, xhi, nx)
+            ly = _exit_cell(cy, dy, ylo, yhi, ny)
+            lz = _exit_cell(cz, dz, zlo, zhi, nz)
             te = min(_next_t(lx, px, dx, ivx),
                      min(_next_t(ly, py, dy, ivy), _next_t(lz, pz, dz, ivz)))
             if te > tend:
