@@ -9,8 +9,12 @@ cd "$ROOT"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
 set +e
+# two pytest-xdist workers (one per core of the CI machines; VLSFOREST_TEST_WORKERS=0 runs in one
+# process); --dist loadgroup keeps each xdist_group on one worker (tests/conftest.py);
 # --durations: the slowest tests at the end of the log (the suite must stay near 20 min on 2 cores)
-.venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 "${MARK[@]}" "$@"
+WORKERS="${VLSFOREST_TEST_WORKERS:-2}"
+.venv/bin/python -m pytest -q -p no:cacheprovider -n "$WORKERS" --dist loadgroup --durations=15 \
+  "${MARK[@]}" "$@"
 rc=$?
 set -e
 [ $rc -eq 5 ] && { echo "run-tests: pytest collected no tests — failing" >&2; exit 1; }

@@ -1,9 +1,16 @@
-"""Shared fixtures: a small virtual forest, recorded once per test session.
+"""Shared fixtures: a small virtual forest, recorded once per test session; test order.
 
 The forest is the ``quick`` preset (plot ``Q1``, 4 targets, ~60 surrounding trees) recorded with
 the quick workflow's TLS settings (5 positions, 0.25° steps, no tilted scans) and the default
 "real" recording physics. Stages downstream of synth (segmentation, stems, PAD, voxels, scenes)
 test against it; only validation code may read its ``truth/`` folder.
+
+``scripts/run-tests.sh`` runs the suite on two pytest-xdist workers (``--dist loadgroup``). The
+two longest parts, the SLURM end-to-end run and the diagnosis' end-to-end cases, carry an
+``xdist_group`` mark: each group runs on one worker, and :func:`pytest_collection_modifyitems`
+puts the grouped tests first so that the two groups start at once, on different workers, while
+the short tests fill in behind them. Session fixtures (``quick_run``) are built once per worker
+that needs them.
 """
 
 from __future__ import annotations
@@ -16,6 +23,11 @@ QUICK_SYNTH = {
     "tls": {"n_positions": 5, "step_deg": 0.25, "n_tilted": 0},
     "recordings": {"uls": {"repeats": 1, "cross_margin_m": 30}},
 }
+
+
+def pytest_collection_modifyitems(config, items):
+    """Grouped tests (``xdist_group``) first, in their collection order; the rest after them."""
+    items.sort(key=lambda item: item.get_closest_marker("xdist_group") is None)  # stable
 
 
 @pytest.fixture(scope="session")

@@ -6,8 +6,11 @@ socket, ports, pid, state, spool and log files under ``tmpdir``), waits until ``
 the node idle and yields a :class:`Cluster` whose ``env`` (``SLURM_CONF`` set) makes the client
 commands (``sbatch``, ``squeue``, ``scontrol``, …) talk to it. On exit it cancels the jobs left in
 its queue and stops exactly the daemons it started (SIGTERM, then SIGKILL), also when the start
-fails halfway. Nothing outside ``tmpdir`` is written; the system's own munge/slurm configuration
-(``/etc/munge``, ``/etc/slurm``) is not read.
+fails halfway. The two Unix sockets' folders (munge's socket, slurmd's spool with one socket per
+job step) go to a short temporary folder of their own, removed on exit: a socket path may hold
+at most 107 bytes, and pytest's ``tmp_path`` under pytest-xdist (``…/popen-gw1/test_…/``) is
+longer than that leaves room for. Nothing else outside ``tmpdir`` is written; the system's own
+munge/slurm configuration (``/etc/munge``, ``/etc/slurm``) is not read.
 
 Cluster layout, chosen for the 2-core CI machines (no systemd, no cgroups, no database):
 
@@ -35,6 +38,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import tempfile
 import time
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
@@ -165,12 +169,31 @@ def _node_line(node):
     return f"NodeName={node} NodeAddr=127.0.0.1 NodeHostname={node} " + " ".join(fields)
 
 
-def write_config(root, node):
-    """Write ``slurm.conf`` and the munge key under ``root``; return the slurm.conf path."""
-    root = Path(root)
-    for sub in ("munge", "state", "spool", "log"):
+#: the longest Unix socket path Linux accepts (sun_path holds 108 bytes with the final NUL)
+MAX_SOCKET_PATH = 107
+
+#: slurmd's socket of a job step: ``{SlurmdSpoolDir}/{node}_{jobid}.{stepid}``; the batch step's
+#: id is 4294967291, the job ids of a test run stay far below 10**7
+_STEP_SOCKET = "{node}_9999999.4294967291"
+
+
+def write_config(root, node, sockets):
+    """Write ``slurm.conf`` and the munge key under ``root``; return the slurm.conf path.
+
+    ``sockets`` is the (short) folder of munge's socket and slurmd's spool.
+    """
+    root, sockets = Path(root), Path(sockets)
+    for sub in ("munge", "state", "log"):
         (root / sub).mkdir(parents=True, exist_ok=True)
         os.chmod(root / sub, 0o700)
+    spool = sockets / "spool" / "slurmd-%n"
+    longest = max(len(str(sockets / "munge.socket")),
+                  len(str(spool).replace("%n", node)) + 1 + len(_STEP_SOCKET.format(node=node)))
+    if longest > MAX_SOCKET_PATH:
+        raise ClusterError(f"socket paths under {sockets} would be {longest} bytes long "
+                           f"(Linux allows {MAX_SOCKET_PATH}); use a shorter folder")
+    (sockets / "spool").mkdir(parents=True, exist_ok=True)
+    os.chmod(sockets / "spool", 0o700)
     key = root / "munge" / "munge.key"
     key.write_bytes(os.urandom(1024))
     os.chmod(key, 0o400)
@@ -186,9 +209,9 @@ SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
 CredType=cred/munge
-AuthInfo=socket={root / "munge" / "munge.socket"}
+AuthInfo=socket={sockets / "munge.socket"}
 StateSaveLocation={root / "state"}
-SlurmdSpoolDir={root / "spool" / "slurmd-%n"}
+SlurmdSpoolDir={spool}
 SlurmctldPidFile={root / "slurmctld.pid"}
 SlurmdPidFile={root / "slurmd.pid"}
 SlurmctldLogFile={root / "log" / "slurmctld.log"}
@@ -292,13 +315,19 @@ def single_node_cluster(tmpdir, *, start_timeout=60.0, stop_timeout=30.0):
     root = Path(tmpdir)
     root.mkdir(parents=True, exist_ok=True)
     node = socket.gethostname().split(".")[0]
-    conf = write_config(root, node)
+    sockets = Path(tempfile.mkdtemp(prefix="vlsf-slurm-"))
+    try:
+        conf = write_config(root, node, sockets)
+    except BaseException:
+        shutil.rmtree(sockets, ignore_errors=True)
+        raise
     env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "SBATCH_", "SRUN_"))}
     env["SLURM_CONF"] = str(conf)
     env["PATH"] = os.pathsep.join([str(_srun_shim(root, conf)), _SEARCH_PATH])
     cluster = Cluster(root, conf, env, node, PARTITION)
-    munge_socket = root / "munge" / "munge.socket"
+    munge_socket = sockets / "munge.socket"
     with ExitStack() as stack:
+        stack.callback(shutil.rmtree, sockets, ignore_errors=True)  # after the daemons stopped
         stack.callback(_shutdown, cluster, stop_timeout)
         _start(cluster, "munged", [
             "--foreground", "--force",

@@ -31,7 +31,9 @@ SLURM_PROFILE = REPO / "profiles" / "slurm"
 NONDETERMINISTIC = ("timing.json", "sim_times.csv", "table5.csv")
 
 _REASON = missing_requirements()
-pytestmark = pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
+pytestmark = [pytest.mark.skipif(_REASON is not None, reason=_REASON or ""),
+              # one pytest-xdist worker runs this module, started first (tests/conftest.py)
+              pytest.mark.xdist_group("slurm")]
 
 
 def _result_files(workdir):
@@ -131,9 +133,22 @@ def test_a_failed_start_stops_the_daemons_already_started(tmp_path, monkeypatch)
     start = slurm_cluster._start
     monkeypatch.setattr(slurm_cluster, "_start", lambda *a, **k: started.append(start(*a, **k))
                         or started[-1])
+    mkdtemp, sockets = slurm_cluster.tempfile.mkdtemp, []
+    monkeypatch.setattr(slurm_cluster.tempfile, "mkdtemp",
+                        lambda **k: sockets.append(mkdtemp(**k)) or sockets[-1])
     with pytest.raises(slurm_cluster.ClusterError, match="slurmctld exited"):
         with single_node_cluster(tmp_path / "cluster", start_timeout=30):
             pytest.fail("the cluster came up without slurmctld")
     assert [d.name for d in started] == ["munged", "slurmctld"]
     assert all(d.proc.returncode is not None and not pid_alive(d.pid) for d in started)
-    assert not (tmp_path / "cluster" / "munge" / "munge.socket").exists()
+    # munge's socket lived in the short sockets folder, which is gone with the daemons
+    assert len(sockets) == 1 and not Path(sockets[0]).exists()
+
+
+def test_socket_paths_too_long_for_linux_are_refused_before_any_daemon_starts(tmp_path):
+    import slurm_cluster
+
+    deep = tmp_path / ("d" * 90)
+    with pytest.raises(slurm_cluster.ClusterError, match="Linux allows 107"):
+        slurm_cluster.write_config(tmp_path / "cluster", "node", deep)
+    assert not (deep / "spool").exists()
