@@ -137,6 +137,18 @@ class Cluster:
                                f"{proc.stdout}{proc.stderr}\n{self.log_tails()}")
         return proc
 
+    def stuck_jobs(self):
+        """Pending jobs that SLURM will not start by itself, as (job id, reason): held by a user
+        or an admin, or held after a failed launch (e.g. slurmstepd could not create its socket).
+        A run that waits for them would wait until its timeout."""
+        q = self.run("squeue", "--noheader", "--states=PENDING", "--format", "%i|%r", check=False, timeout=10)
+        out = []
+        for ln in q.stdout.splitlines():
+            jid, _, reason = ln.partition("|")
+            if "held" in reason.lower() or "launch failed" in reason.lower():
+                out.append((jid.strip(), reason.strip()))
+        return out
+
     def log_tails(self, n=4000):
         parts = []
         for d in self.daemons.values():

@@ -15,7 +15,11 @@ the plugin polls squeue with a growing interval).
 
 from __future__ import annotations
 
+import os
 import re
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -23,7 +27,7 @@ import pytest
 import yaml
 
 from slurm_cluster import missing_plugins, missing_requirements, pid_alive, single_node_cluster
-from wfrun import QUICK, REPO, snakemake_cli
+from wfrun import QUICK, REPO, SNAKEFILE
 
 SLURM_PROFILE = REPO / "profiles" / "slurm"
 
@@ -48,6 +52,33 @@ def _steps_done(text):
     return int(done[-1][1])
 
 
+def _snakemake_watched(cluster, logdir, *args, cwd, timeout, poll=5.0):
+    """Run the Snakemake CLI against ``cluster`` (like ``snakemake_cli``), but stop it and fail
+    at once when one of its jobs is stuck in the queue (:meth:`Cluster.stuck_jobs`) instead of
+    waiting out ``timeout``; the failure carries the daemons' log tails."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
+    out_path, err_path = Path(logdir) / "snakemake.stdout", Path(logdir) / "snakemake.stderr"
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=out, stderr=err, env=cluster.env,
+                                start_new_session=True)
+        t_end = time.monotonic() + timeout
+        try:
+            while proc.poll() is None:
+                stuck = cluster.stuck_jobs()
+                if stuck or time.monotonic() > t_end:
+                    why = f"jobs stuck in the queue: {stuck}" if stuck else f"timed out after {timeout} s"
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait()
+                    pytest.fail(f"Snakemake stopped, {why}\n{err_path.read_text()[-3000:]}\n"
+                                f"{cluster.log_tails()}")
+                time.sleep(poll)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    return subprocess.CompletedProcess(cmd, proc.returncode, out_path.read_text(), err_path.read_text())
+
+
 def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
     if missing_plugins():
         pytest.skip(missing_plugins())
@@ -63,7 +94,8 @@ def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
         assert all(pid_alive(pid) for pid in daemons.values())
         cpus = int(cluster.run("sinfo", "--noheader", "--format", "%c").stdout.split()[0])
         t0 = time.perf_counter()
-        proc = snakemake_cli(
+        proc = _snakemake_watched(
+            cluster, tmp_path,
             "--workflow-profile", SLURM_PROFILE,
             "--configfile", QUICK,
             "--executor", "slurm",
@@ -79,7 +111,7 @@ def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
             # finished (reset on a finish); the quick run's jobs take ~5-20 s each
             "--slurm-init-seconds-before-status-checks", 3,
             "--slurm-keep-successful-logs",
-            cwd=workdir, timeout=900, env=cluster.env)
+            cwd=workdir, timeout=900)
         seconds = time.perf_counter() - t0
         out = proc.stdout + proc.stderr
         assert proc.returncode == 0, out[-5000:] + "\n" + cluster.log_tails()
@@ -152,3 +184,23 @@ def test_socket_paths_too_long_for_linux_are_refused_before_any_daemon_starts(tm
     with pytest.raises(slurm_cluster.ClusterError, match="Linux allows 107"):
         slurm_cluster.write_config(tmp_path / "cluster", "node", deep)
     assert not (deep / "spool").exists()
+
+
+def test_a_held_job_is_reported_stuck_and_runs_once_released(tmp_path):
+    """What the SLURM run's watcher stops on: a held job is stuck (it would never start), the
+    same job released is not, and then runs to completion."""
+    with single_node_cluster(tmp_path / "cluster", start_timeout=30) as cluster:
+        assert cluster.stuck_jobs() == []
+        jid = cluster.run("sbatch", "--parsable", "--hold", "--output", tmp_path / "job.out",
+                          "--wrap", "echo ran").stdout.strip().split(";")[0]
+        stuck = cluster.stuck_jobs()
+        assert [j for j, _ in stuck] == [jid] and "held" in stuck[0][1].lower(), stuck
+        cluster.run("scontrol", "release", jid)
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and not (tmp_path / "job.out").is_file():
+            assert cluster.stuck_jobs() == []
+            time.sleep(0.5)
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end and (tmp_path / "job.out").read_text().strip() != "ran":
+            time.sleep(0.5)
+        assert (tmp_path / "job.out").read_text().strip() == "ran"
