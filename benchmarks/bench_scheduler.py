@@ -25,7 +25,8 @@ from pathlib import Path
 import psutil
 
 REPO = Path(__file__).resolve().parents[1]
-COMMON = REPO / "workflow" / "rules" / "common.smk"
+sys.path.insert(0, str(REPO / "tests"))
+from wfrun import scheduler_workaround_source  # noqa: E402  (tests/ holds the shared helper)
 
 SNAKEFILE = """
 {workaround}
@@ -40,10 +41,7 @@ rule job:
 
 
 def _workaround_source() -> str:
-    text = COMMON.read_text()
-    start = text.index("def _one_pending_reevaluation():")
-    end = text.index("\n_one_pending_reevaluation()\n", start)
-    return text[start:end] + "\n_one_pending_reevaluation()\n"
+    return scheduler_workaround_source()[0] + "\n_one_pending_reevaluation()\n"
 
 
 def _run(workdir: Path, with_workaround: bool, jobs: int, sleep: float) -> dict:

@@ -3,19 +3,15 @@ at most one pending re-evaluation timer, and no lost wake-up."""
 
 import threading
 import time
-from pathlib import Path
 
-
-COMMON = Path(__file__).resolve().parents[1] / "workflow" / "rules" / "common.smk"
+from wfrun import COMMON, scheduler_workaround_source
 
 
 def _workaround():
-    # the function as the Snakefile defines it (common.smk is Snakemake code, not importable)
-    text = COMMON.read_text()
-    start = text.index("def _one_pending_reevaluation():")
-    end = text.index("\n_one_pending_reevaluation()\n", start)
+    # the function as the Snakefile defines it, compiled with common.smk's line numbers
+    source, line = scheduler_workaround_source()
     ns = {}
-    exec(compile("\n" * text.count("\n", 0, start) + text[start:end], str(COMMON), "exec"), ns)
+    exec(compile("\n" * line + source, str(COMMON), "exec"), ns)
     return ns["_one_pending_reevaluation"]
 
 
