@@ -10,7 +10,7 @@ MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
 set +e
 # two pytest-xdist workers (one per core of the CI machines; VLSFOREST_TEST_WORKERS=0 runs in one
-# process); --dist loadgroup keeps each xdist_group on one worker (tests/conftest.py);
+# process); --dist loadgroup hands the tests out one at a time, the longest first (tests/conftest.py);
 # --durations: the slowest tests at the end of the log (the suite must stay near 20 min on 2 cores)
 WORKERS="${VLSFOREST_TEST_WORKERS:-2}"
 .venv/bin/python -m pytest -q -p no:cacheprovider -n "$WORKERS" --dist loadgroup --durations=15 \

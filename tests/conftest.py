@@ -5,12 +5,15 @@ the quick workflow's TLS settings (5 positions, 0.25° steps, no tilted scans) a
 "real" recording physics. Stages downstream of synth (segmentation, stems, PAD, voxels, scenes)
 test against it; only validation code may read its ``truth/`` folder.
 
-``scripts/run-tests.sh`` runs the suite on two pytest-xdist workers (``--dist loadgroup``). The
-two longest parts, the SLURM end-to-end run and the diagnosis' end-to-end cases, carry an
-``xdist_group`` mark: each group runs on one worker, and :func:`pytest_collection_modifyitems`
-puts the grouped tests first so that the two groups start at once, on different workers, while
-the short tests fill in behind them. Session fixtures (``quick_run``) are built once per worker
-that needs them.
+``scripts/run-tests.sh`` runs the suite on two pytest-xdist workers with ``--dist loadgroup``.
+No test carries an ``xdist_group`` mark (with pytest 9, pytest-xdist 3.8's groups have no effect:
+the group name it appends to ``item._nodeid`` is not read by pytest 9's nodes, so a group's tests
+were spread over both workers), so every test is its own unit, handed out in collection order:
+one to each worker, then one more to each, then one at a time to whichever worker is free.
+:func:`pytest_collection_modifyitems` puts the three longest tests, marked ``early``, first: the
+diagnosis' region test and the SLURM run go to one worker, the diagnosis' hidden-threshold case to
+the other, and the short tests fill in behind them. Session fixtures (``quick_run``) are built
+once per worker that needs them.
 """
 
 from __future__ import annotations
@@ -26,8 +29,8 @@ QUICK_SYNTH = {
 
 
 def pytest_collection_modifyitems(config, items):
-    """Grouped tests (``xdist_group``) first, in their collection order; the rest after them."""
-    items.sort(key=lambda item: item.get_closest_marker("xdist_group") is None)  # stable
+    """Tests marked ``early`` first, in their collection order; the rest after them."""
+    items.sort(key=lambda item: item.get_closest_marker("early") is None)  # stable
 
 
 @pytest.fixture(scope="session")

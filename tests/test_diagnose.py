@@ -353,7 +353,7 @@ def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ library
-@pytest.mark.xdist_group("diagnose")
+@pytest.mark.early  # one of the longest tests: started first (tests/conftest.py)
 def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace(quick_run, tmp_path):
     # the diagnosis traces the pulses that enter the trees' observed region (points ± radius,
     # ground columns under the crowns); the pulses it skips leave no return that an observable
@@ -469,7 +469,7 @@ def hidden_threshold(quick_run, tmp_path_factory):
     return out, physics
 
 
-@pytest.mark.xdist_group("diagnose")
+@pytest.mark.early  # one of the longest tests: started first (tests/conftest.py)
 def test_hidden_detection_threshold_is_found_fitted_and_improves_heldout_trees(quick_run, hidden_threshold,
                                                                                tmp_path):
     """Blind case: the tool sees the voxel reconstruction of the quick run (made from the TLS

@@ -35,9 +35,7 @@ SLURM_PROFILE = REPO / "profiles" / "slurm"
 NONDETERMINISTIC = ("timing.json", "sim_times.csv", "table5.csv")
 
 _REASON = missing_requirements()
-pytestmark = [pytest.mark.skipif(_REASON is not None, reason=_REASON or ""),
-              # one pytest-xdist worker runs this module, started first (tests/conftest.py)
-              pytest.mark.xdist_group("slurm")]
+pytestmark = pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
 
 
 def _result_files(workdir):
@@ -79,6 +77,7 @@ def _snakemake_watched(cluster, logdir, *args, cwd, timeout, poll=5.0):
     return subprocess.CompletedProcess(cmd, proc.returncode, out_path.read_text(), err_path.read_text())
 
 
+@pytest.mark.early  # one of the longest tests: started first (tests/conftest.py)
 def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
     if missing_plugins():
         pytest.skip(missing_plugins())
