@@ -8,7 +8,7 @@ test against it; only validation code may read its ``truth/`` folder.
 ``scripts/run-tests.sh`` runs the suite on two pytest-xdist workers with ``--dist loadgroup``.
 No test carries an ``xdist_group`` mark (with pytest 9, pytest-xdist 3.8's groups have no effect:
 the group name it appends to ``item._nodeid`` is not read by pytest 9's nodes, so a group's tests
-were spread over both workers), so every test is its own unit, handed out in collection order:
+were spread over both workers; upstream: pytest-dev/pytest-xdist#1386, open), so every test is its own unit, handed out in collection order:
 one to each worker, then one more to each, then one at a time to whichever worker is free.
 :func:`pytest_collection_modifyitems` puts the three longest tests, marked ``early``, first: the
 diagnosis' region test and the SLURM run go to one worker, the diagnosis' hidden-threshold case to
