@@ -327,19 +327,15 @@ def single_node_cluster(tmpdir, *, start_timeout=60.0, stop_timeout=30.0):
     root = Path(tmpdir)
     root.mkdir(parents=True, exist_ok=True)
     node = socket.gethostname().split(".")[0]
-    sockets = Path(tempfile.mkdtemp(prefix="vlsf-slurm-"))
-    try:
-        conf = write_config(root, node, sockets)
-    except BaseException:
-        shutil.rmtree(sockets, ignore_errors=True)
-        raise
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "SBATCH_", "SRUN_"))}
-    env["SLURM_CONF"] = str(conf)
-    env["PATH"] = os.pathsep.join([str(_srun_shim(root, conf)), _SEARCH_PATH])
-    cluster = Cluster(root, conf, env, node, PARTITION)
-    munge_socket = sockets / "munge.socket"
     with ExitStack() as stack:
-        stack.callback(shutil.rmtree, sockets, ignore_errors=True)  # after the daemons stopped
+        sockets = Path(tempfile.mkdtemp(prefix="vlsf-slurm-"))
+        stack.callback(shutil.rmtree, sockets, ignore_errors=True)  # last: after the daemons stopped
+        conf = write_config(root, node, sockets)
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "SBATCH_", "SRUN_"))}
+        env["SLURM_CONF"] = str(conf)
+        env["PATH"] = os.pathsep.join([str(_srun_shim(root, conf)), _SEARCH_PATH])
+        cluster = Cluster(root, conf, env, node, PARTITION)
+        munge_socket = sockets / "munge.socket"
         stack.callback(_shutdown, cluster, stop_timeout)
         _start(cluster, "munged", [
             "--foreground", "--force",

@@ -19,7 +19,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import pytest
 import yaml
 
 from slurm_cluster import missing_plugins, missing_requirements, pid_alive, single_node_cluster
-from wfrun import QUICK, REPO, SNAKEFILE
+from wfrun import QUICK, REPO, snakemake_command
 
 SLURM_PROFILE = REPO / "profiles" / "slurm"
 
@@ -54,7 +53,7 @@ def _snakemake_watched(cluster, logdir, *args, cwd, timeout, poll=5.0):
     """Run the Snakemake CLI against ``cluster`` (like ``snakemake_cli``), but stop it and fail
     at once when one of its jobs is stuck in the queue (:meth:`Cluster.stuck_jobs`) instead of
     waiting out ``timeout``; the failure carries the daemons' log tails."""
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
+    cmd = snakemake_command(*args)
     out_path, err_path = Path(logdir) / "snakemake.stdout", Path(logdir) / "snakemake.stderr"
     with open(out_path, "w") as out, open(err_path, "w") as err:
         proc = subprocess.Popen(cmd, cwd=cwd, stdout=out, stderr=err, env=cluster.env,
