@@ -119,7 +119,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
     setup.oracle = CASES[case][1] or None
     setup.metric = metric
     t0 = time.perf_counter()
-    rep = diagnose(setup, log=lambda m: None)
+    rep = diagnose(setup, log=lambda m: None, work_dir=workdir / f"seed{seed}")  # traces read back: on disk there
     dt = time.perf_counter() - t0
     sq = "" if sim_quality is None else f"_sim{sim_quality}"
     (workdir / f"seed{seed}" / (case + _tag()) / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}{sq}.json").write_text(json.dumps(rep, indent=1))
@@ -152,7 +152,8 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
             "worse": "+".join(sorted({m for e in acc for m in e.get("worse_metrics", [])})),
             "worse_told_truth": "+".join(o.get("worse_told_truth", [])),
             "worse_fitted_than_truth": "+".join(o.get("worse_fitted_than_truth", [])),
-            "traced": rep["cost"]["traced_simulations"], "seconds": round(dt, 1)}
+            "traced": rep["cost"]["traced_simulations"], "read_back": rep["cost"].get("traces_read_back", 0),
+            "seconds": round(dt, 1)}
 
 
 def summarise(df) -> None:

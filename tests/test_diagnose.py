@@ -291,6 +291,24 @@ def test_tree_labeller_built_once_labels_many_clouds_like_extract_reference():
         assert np.array_equal(label_trees(arrays, trees, 0.3), want)
 
 
+def _bare_plot_sim(tmp_path, spill_dir=None):
+    """A :class:`core._PlotSim` with only what its trace cache needs (no scene, no real data)."""
+    from vlsforest.diagnose import core
+
+    ps = object.__new__(core._PlotSim)
+    ps.p = core.PlotInput("Q", tmp_path, tmp_path, tmp_path, tmp_path, 0.3)
+    ps.survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3}, "seed": 0,
+                 "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
+    ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
+    ps._traces, ps._sims, ps._pinned, ps.n_traced, ps.n_loaded, ps.log = {}, {}, None, 0, 0, lambda msg: None
+    ps._spill_dir, ps._keep, ps._spilled = spill_dir, set(), {}
+    return ps
+
+
+def div(v):
+    return {"beam_divergence": {"scale": v}}
+
+
 def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeypatch, tmp_path):
     import vlsforest.sim as vsim
     from vlsforest.diagnose import core
@@ -302,13 +320,7 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
         return {"slot": np.arange(3)}, {"pulse": np.zeros(4, np.int32)}
 
     monkeypatch.setattr(vsim, "trace_hits", fake_trace_hits)
-    ps = object.__new__(core._PlotSim)
-    ps.p = core.PlotInput("Q", tmp_path, tmp_path, tmp_path, tmp_path, 0.3)
-    ps.survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3}, "seed": 0,
-                 "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
-    ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
-    ps._traces, ps._sims, ps._pinned, ps.n_traced, ps.log = {}, {}, None, 0, lambda msg: None
-    div = lambda v: {"beam_divergence": {"scale": v}}  # noqa: E731
+    ps = _bare_plot_sim(tmp_path)
     ps.pin({"range_noise": {"sigma_m": 0.1}})  # stored-hit candidates do not change the trace
     ps._trace({})
     ps._trace(div(1.0))  # the survey as given: no new trace
@@ -324,6 +336,66 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
     assert ps.n_traced == 5 and len(ps._traces) == 2
     base = np.array(vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad)
     assert traced == [tuple(base), tuple(2 * base), tuple(3 * base), tuple(2 * base), tuple(3 * base)]
+
+
+def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(monkeypatch, tmp_path):
+    """The signatures' traces of a stage that is not the last are written to the spill folder
+    when they leave memory, and read back (same arrays, dtypes and key order) when the next
+    stage asks for them; traces the next stage does not ask for are deleted from disk; the last
+    stage writes nothing; without a spill folder everything is traced again."""
+    import vlsforest.sim as vsim
+
+    traced = []
+
+    def fake_trace_hits(scene, survey, **kw):
+        scale = survey.scanner.beam_divergence_mrad[0]
+        traced.append(scale)
+        rng = np.random.default_rng(int(scale * 1e6))
+        pulses = {"slot": np.arange(5, dtype=np.int64), "origin": rng.normal(size=(5, 3))}
+        hits = {"pulse": np.repeat(np.arange(5, dtype=np.int32), 2), "subray": rng.integers(0, 19, 10).astype(np.int16),
+                "range": rng.uniform(5, 90, 10), "cos_inc": rng.uniform(0, 1, 10).astype(np.float32)}
+        return pulses, hits
+
+    monkeypatch.setattr(vsim, "trace_hits", fake_trace_hits)
+    spill = tmp_path / "spill"
+    spill.mkdir()
+    ps = _bare_plot_sim(tmp_path, spill)
+    ps.pin({})
+    ps.keep([div(2.0), div(3.0)])  # a stage's signatures, not the last stage
+    first = {k: dict(v) for k, v in zip(("pulses", "hits"), ps._trace(div(2.0)))}
+    ps._trace(div(3.0))   # div 2 leaves memory: to disk
+    ps._trace(div(4.0))   # div 3 leaves memory: to disk (div 4 is no signature)
+    assert ps.n_traced == 3 and len(list(spill.iterdir())) == 2
+    ps.keep([div(2.0), div(5.0)], spill=False)  # the last stage: div 3 is not needed again
+    assert len(list(spill.iterdir())) == 1
+    again = ps._trace(div(2.0))
+    assert ps.n_traced == 3 and ps.n_loaded == 1
+    for name, arrays in zip(("pulses", "hits"), again):
+        assert list(arrays) == list(first[name])
+        for k, v in arrays.items():
+            assert v.dtype == first[name][k].dtype and np.array_equal(v, first[name][k])
+    ps._trace(div(5.0))   # div 2 leaves memory again: already on disk, not written twice
+    assert ps.n_traced == 4 and len(list(spill.iterdir())) == 1
+    assert len(traced) == 4
+
+    plain = _bare_plot_sim(tmp_path)  # no spill folder: marks change nothing
+    plain.pin({})
+    plain.keep([div(2.0), div(3.0)])
+    for v in (2.0, 3.0, 2.0):
+        plain._trace(div(v))
+    assert plain.n_traced == 3 and plain.n_loaded == 0
+
+
+def test_diagnosis_leaves_no_spill_folder_behind_when_it_fails(tmp_path):
+    """The spill folder lives beside the output and goes away with the run, also on an error."""
+    from vlsforest.diagnose import core
+    from vlsforest.errors import InputDataError
+
+    setup = core.Setup(scenario="uls", plots=[core.PlotInput("Q", tmp_path / "none.laz", tmp_path, tmp_path,
+                                                             tmp_path / "segment", 0.3)])
+    with pytest.raises(InputDataError, match="no trees.csv"):
+        core.diagnose(setup, log=lambda m: None, work_dir=tmp_path / "out")
+    assert (tmp_path / "out").is_dir() and list((tmp_path / "out").iterdir()) == []
 
 
 def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
@@ -507,6 +579,12 @@ def test_hidden_detection_threshold_is_found_fitted_and_improves_heldout_trees(q
     assert all(m in rep["verdict"] for m in fit["worse_metrics"])
     assert rep["cost"]["traced_simulations"] <= 30
     assert (tmp_path / "uls.png").stat().st_size > 10_000
+    # the threshold renders stored hits: the second stage's signatures read the first stage's
+    # traces back from disk (all but the one still in memory) instead of tracing them again
+    assert len(rep["rounds"]) >= 2
+    n_trace_side = sum(lib.CANDIDATES[r["name"]].render == "trace" for r in rep["rounds"][0]["ranking"])
+    assert rep["cost"]["traces_read_back"] == n_trace_side - 1 > 0
+    assert not list(tmp_path.glob(".diagnose-traces-*"))  # the spill folder is gone
 
 
 # ------------------------------------------------------------------------------------ workflow
@@ -573,7 +651,9 @@ class _LinearStudy:
     def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5):
         rng = np.random.default_rng(seed)
         nf = len(FEATURES)
-        self.n_traced = 0
+        self.n_traced = self.n_loaded = 0
+        self.kept = []  # (stage's assignments, spill) per round, as core._attribute marks them
+        self.simulated = set()
         self.base = rng.normal(size=(n_trees, nf)) * 3
         self.G = {name: rng.normal(size=nf) for name in lib.CANDIDATES}
         self.scale = {"beam_divergence": 1.0, "elliptical_footprint": 1.0, "detection_threshold": 1 / 5000,
@@ -595,6 +675,7 @@ class _LinearStudy:
         return out
 
     def sim(self, assign):
+        self.simulated.add(json.dumps(assign, sort_keys=True))
         return pd.DataFrame(self.base + self._response(assign), index=self.index, columns=list(FEATURES))
 
     def pin(self, assign):
@@ -602,6 +683,9 @@ class _LinearStudy:
 
     def has_trace(self, assign):
         return False
+
+    def keep(self, assigns, spill=True):
+        self.kept.append(([json.loads(json.dumps(a)) for a in assigns], spill))
 
     def residual(self, assign):
         return (self.real - self.sim(assign)).to_numpy(float)
@@ -640,7 +724,7 @@ class _TracingStudy(_LinearStudy):
 def _run_logic(monkeypatch, study, seed=0):
     from vlsforest.diagnose import core
 
-    monkeypatch.setattr(core, "_Study", lambda setup, log: study)
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
     setup = core.Setup(scenario="uls", plots=[], seed=seed)
     return core.diagnose(setup, log=lambda m: None)
 
@@ -684,7 +768,7 @@ def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(mon
 
     hidden = {"range_noise": {"sigma_m": 0.06}}
     study = _LinearStudy(hidden)
-    monkeypatch.setattr(core, "_Study", lambda setup, log: study)
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
     setup = core.Setup(scenario="uls", plots=[], seed=0)
     setup.oracle = hidden
     rep = core.diagnose(setup, log=lambda m: None)
@@ -708,7 +792,7 @@ def test_logic_runs_in_the_whitened_metric(monkeypatch):
     from vlsforest.diagnose import core
 
     study = _LinearStudy({"range_noise": {"sigma_m": 0.06}})
-    monkeypatch.setattr(core, "_Study", lambda setup, log: study)
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
     rep = core.diagnose(core.Setup(scenario="uls", plots=[], seed=0, metric="whitened"), log=lambda m: None)
     assert rep["metric"] == "whitened" and rep["accepted"][:1] == ["range_noise"]
     assert rep["effects"][0]["parameters"]["sigma_m"] == pytest.approx(0.06, rel=0.2)
@@ -782,8 +866,18 @@ def test_logic_finds_two_hidden_effects(monkeypatch):
     study = _LinearStudy({"range_noise": {"sigma_m": 0.08}, "waveform_window": {"window_ns": 3.5}})
     rep = _run_logic(monkeypatch, study)
     assert set(rep["accepted"]) == {"range_noise", "waveform_window"}, rep["verdict"]
-    # the traces kept cached follow the search's baseline: both accepted effects at their fitted values
-    assert study.pinned == {e["name"]: e["parameters"] for e in rep["effects"] if e["accepted"]}
+    first, second = [e for e in rep["effects"] if e["accepted"]]
+    # the traces kept cached follow the search's baseline: the first effect at its fitted value;
+    # after the last stage nothing is simulated with both fitted values (no stage needs it)
+    assert study.pinned == {first["name"]: first["parameters"]}
+    assert json.dumps({first["name"]: first["parameters"], second["name"]: second["parameters"]},
+                      sort_keys=True) not in study.simulated
+    # the signatures' traces go to disk in the first round only (the second is the last)
+    assert [spill for _, spill in study.kept] == [True, False]
+    assert all(a[first["name"]] == first["parameters"] for a in study.kept[1][0])
+    # "after" is on held-out trees: the residual the second effect's held-out check left
+    after = {f: v["after"] for f, v in second["heldout_mean_residual"].items() if v["after"] is not None}
+    assert after and {f: rep["residual_after"][f] for f in after} == pytest.approx(after)
 
 
 def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved():

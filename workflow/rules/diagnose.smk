@@ -20,6 +20,7 @@ rule diagnose:
     threads: 2
     resources:
         mem_mb=12000,
+        disk_mb=16000,  # a stage's traces wait beside the report for the next stage (≤ 4 × ≈ 3.5 GB on the default forest)
         runtime=60,
     params:
         setup=diagnosis_param,

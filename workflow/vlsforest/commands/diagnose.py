@@ -53,9 +53,10 @@ def run(args) -> int:
             yaml.safe_load(Path(args.sim_config).read_text())
         Path(args.write_sim_config).parent.mkdir(parents=True, exist_ok=True)
         Path(args.write_sim_config).write_text(yaml.safe_dump(d, sort_keys=True))
-    rep = diagnose(setup, log=(lambda m: None) if args.quiet else None)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
+    # traces a later stage reads back wait beside the output, in a folder deleted at the end
+    rep = diagnose(setup, log=(lambda m: None) if args.quiet else None, work_dir=out.parent)
     out.write_text(json.dumps(rep, indent=1, sort_keys=True) + "\n")
     if args.figure:
         from vlsforest.diagnose.figure import plot_diagnosis

@@ -231,6 +231,24 @@ def _release_freed_memory():
         trim(0)
 
 
+def _save_trace(folder: Path, trace: tuple) -> None:
+    """Write a trace (pulses, hits) as one ``.npy`` file per array (key order kept)."""
+    folder.mkdir(parents=True)
+    order = {}
+    for name, arrays in zip(("pulses", "hits"), trace):
+        order[name] = list(arrays)
+        for k, v in arrays.items():
+            np.save(folder / f"{name}.{k}.npy", v, allow_pickle=False)
+    (folder / "order.json").write_text(json.dumps(order))
+
+
+def _load_trace(folder: Path) -> tuple:
+    """Read back what :func:`_save_trace` wrote: the same arrays, dtypes and key order."""
+    order = json.loads((folder / "order.json").read_text())
+    return tuple({k: np.load(folder / f"{name}.{k}.npy", allow_pickle=False) for k in order[name]}
+                 for name in ("pulses", "hits"))
+
+
 def _resampled(survey: dict, quality: int | None) -> dict:
     """``survey`` with its beam sampled by ``quality`` sub-ray rings (``None``: as it is)."""
     if quality is None:
@@ -241,12 +259,16 @@ def _resampled(survey: dict, quality: int | None) -> dict:
 class _PlotSim:
     """One plot: its scene, survey, trees and real observables; simulations with caching."""
 
-    def __init__(self, p: PlotInput, seed: int, workers: int, log, beam_sample_quality: int | None = None):
+    def __init__(self, p: PlotInput, seed: int, workers: int, log, beam_sample_quality: int | None = None,
+                 spill_dir: Path | None = None):
         from vlsforest.io.las import read_las
         from vlsforest.sim import Scene
         from vlsforest.sim.survey import load_survey_dict
 
         self.p, self.seed, self.workers, self.log = p, seed, workers, log
+        self._spill_dir = spill_dir
+        self._keep: set = set()       # keys of traces written to disk when evicted (a later stage reuses them)
+        self._spilled: dict = {}      # key → folder of a trace on disk
         seg = Path(p.segment)
         if not (seg / "trees.csv").is_file():
             raise InputDataError(f"{seg}: no trees.csv (a 'vlsforest segment' output folder is needed)")
@@ -277,6 +299,7 @@ class _PlotSim:
         self._sims: dict = {}
         self._pinned = None
         self.n_traced = 0
+        self.n_loaded = 0
         self.n_redetected = 0
 
     def _features(self, arrays):
@@ -325,18 +348,26 @@ class _PlotSim:
     def _trace(self, trace_part: dict):
         """The pulses with hits and their hits for the trace-side parameters ``trace_part``.
 
-        Keeps two traces: the search's current baseline (:meth:`pin`) and the last other one. A
-        trace of a default-forest plot holds ≈ 120 M sub-ray hits (≈ 3.5 GB); the search renders
-        every stored-hit candidate on its baseline's trace and visits trace-side values one
-        after the other (their features are cached separately).
+        Keeps two traces in memory: the search's current baseline (:meth:`pin`) and the last
+        other one. A trace of a default-forest plot holds ≈ 120 M sub-ray hits (≈ 3.5 GB); the
+        search renders every stored-hit candidate on its baseline's trace and visits trace-side
+        values one after the other (their features are cached separately). A trace marked by
+        :meth:`keep` is written to the spill folder when it leaves memory and read back when
+        asked for again (the next stage's signatures), instead of being traced again.
         """
         from vlsforest.sim import trace_hits
 
         key, sv, edits = self._key(trace_part)
         if key not in self._traces:
             for k in [k for k in self._traces if k != self._pinned]:
-                del self._traces[k]  # free it before tracing the next
+                self._evict(k)
             t0 = time.perf_counter()
+            if key in self._spilled:
+                self._traces[key] = _load_trace(self._spilled[key])
+                self.n_loaded += 1
+                self.log(f"  {self.p.name}: read {json.dumps(trace_part)} back from disk in "
+                         f"{time.perf_counter() - t0:.1f} s (no new trace)")
+                return self._traces[key]
             self._traces[key] = trace_hits(self._scene_for(edits), sv, seed=self.seed, workers=self.workers,
                                            region=self.region)
             _release_freed_memory()
@@ -344,6 +375,25 @@ class _PlotSim:
             self.log(f"  {self.p.name}: traced {json.dumps(trace_part)} in {time.perf_counter() - t0:.1f} s "
                      f"({len(self._traces[key][1]['pulse']):,} sub-ray hits)")
         return self._traces[key]
+
+    def _evict(self, key) -> None:
+        """Drop a trace from memory; first write it to the spill folder if it is kept."""
+        trace = self._traces.pop(key)
+        if key in self._keep and key not in self._spilled and self._spill_dir is not None:
+            folder = self._spill_dir / f"{self.p.name}-{len(self._spilled)}"
+            _save_trace(folder, trace)
+            self._spilled[key] = folder
+        del trace
+
+    def keep(self, assigns: list, spill: bool = True) -> None:
+        """The traces of ``assigns`` are this stage's: traces on disk that are not are deleted,
+        and (with ``spill``) these are written to disk when they leave memory."""
+        import shutil
+
+        needed = {self._key(_trace_part(a))[0] for a in assigns}
+        for k in [k for k in self._spilled if k not in needed]:
+            shutil.rmtree(self._spilled.pop(k))
+        self._keep = needed if spill else set()
 
     def pin(self, assign: dict) -> None:
         """Keep the trace of ``assign`` (the search's baseline) cached until the next pin."""
@@ -369,8 +419,9 @@ class _PlotSim:
 class _Study:
     """All plots together: observables of real and simulated trees, cached per parameter set."""
 
-    def __init__(self, setup: Setup, log):
-        self.plots = [_PlotSim(p, setup.seed, setup.workers, log, setup.beam_sample_quality) for p in setup.plots]
+    def __init__(self, setup: Setup, log, spill_dir: Path | None = None):
+        self.plots = [_PlotSim(p, setup.seed, setup.workers, log, setup.beam_sample_quality, spill_dir)
+                      for p in setup.plots]
         self.real = pd.concat([p.real for p in self.plots])
         self._cache: dict = {}
 
@@ -378,6 +429,12 @@ class _Study:
         """Keep the traces of ``assign`` (the search's current baseline) cached in every plot."""
         for p in self.plots:
             p.pin(assign)
+
+    def keep(self, assigns: list, spill: bool = True) -> None:
+        """The traces of this stage's signatures: written to disk once they leave memory (with
+        ``spill``: a later stage may read them back); other traces on disk are deleted."""
+        for p in self.plots:
+            p.keep(assigns, spill)
 
     def sim(self, assign: dict) -> pd.DataFrame:
         key = json.dumps(assign, sort_keys=True)
@@ -396,6 +453,10 @@ class _Study:
     @property
     def n_traced(self):
         return sum(p.n_traced for p in self.plots)
+
+    @property
+    def n_loaded(self):
+        return sum(p.n_loaded for p in self.plots)
 
     @property
     def has_scaled(self):
@@ -429,8 +490,15 @@ def _grid(par: lib.Param, lo: float, hi: float, base: float, n: int) -> np.ndarr
 
 
 # ------------------------------------------------------------------------------------ the steps
-def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray, metric: str = "diagonal"):
-    """Signatures, projections, scores and groups of every candidate (relative to ``base``)."""
+def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray, metric: str = "diagonal",
+               last: bool = True):
+    """Signatures, projections, scores and groups of every candidate (relative to ``base``).
+
+    Unless this is the ``last`` stage, the candidates' traces go to disk when they leave memory:
+    when the stage accepts a stored-hit effect (threshold, window, noise, …), the next stage's
+    signatures render the same traces again with the new baseline, and read them back instead of
+    tracing them.
+    """
     rbar = np.nanmean(D0, axis=0)
     if metric == "whitened":
         sd, R, _ = st.shrunk_correlation(D0)
@@ -441,6 +509,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
         project = st.project
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
     steps = {c.name: c.step(base.get(c.name, c.baseline(study.survey)), study.survey) for c in cands}
+    study.keep([_merge(base, c.name, steps[c.name]) for c in cands], spill=not last)
     # simulate the candidates whose trace is still held first: a trace-side candidate traced last
     # in the previous round is not traced again after the others evicted it (same results)
     for c in sorted(cands, key=lambda c: not study.has_trace(_merge(base, c.name, steps[c.name]))):
@@ -543,12 +612,37 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     return allv, per_fold, ci
 
 
-def diagnose(setup: Setup, log=None) -> dict:
-    """Run the diagnosis (see the module docstring); return the report mapping."""
-    log = log or (lambda m: print(f"diagnose: {m}", file=sys.stderr, flush=True))
+def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
+    """Run the diagnosis (see the module docstring); return the report mapping.
+
+    Parameters
+    ----------
+    setup : Setup
+    log : callable, optional
+        Takes each progress line (default: print to stderr).
+    work_dir : path, optional
+        Where a temporary folder may hold ray traces that a later stage reads back instead of
+        tracing again (up to one per trace-side candidate, ≈ 3.5 GB each on the default forest);
+        it is deleted before returning. Without it every trace is made anew when needed.
+    """
+    import shutil
+    import tempfile
+
+    spill = None
+    if work_dir is not None:
+        Path(work_dir).mkdir(parents=True, exist_ok=True)
+        spill = Path(tempfile.mkdtemp(prefix=".diagnose-traces-", dir=work_dir))
+    try:
+        return _diagnose(setup, log or (lambda m: print(f"diagnose: {m}", file=sys.stderr, flush=True)), spill)
+    finally:
+        if spill is not None:
+            shutil.rmtree(spill, ignore_errors=True)
+
+
+def _diagnose(setup: Setup, log, spill_dir) -> dict:
     t0 = time.perf_counter()
     rng = np.random.default_rng(setup.seed)
-    study = _Study(setup, log)
+    study = _Study(setup, log, spill_dir)
     cands = lib.select(setup.candidates)
     if not study.has_scaled and any(c.name == "tls_occlusion" for c in cands):
         if setup.candidates_given:
@@ -583,9 +677,11 @@ def diagnose(setup: Setup, log=None) -> dict:
 
     effects, accepted, rounds = [], [], []
     current_D = D0
+    final_D = D0  # the held-out residuals after the last accepted effect
     remaining = list(cands)
     for stage in range(setup.max_effects if significant else 0):
-        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w, setup.metric)
+        last = stage + 1 >= setup.max_effects or len(remaining) < 2
+        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w, setup.metric, last=last)
         ranked, tie = _tie_break(ranked, sigs, cosm, current_D, w)
         rounds.append({"stage": stage + 1, "ranking": [{k: (round(v, 4) if isinstance(v, float) else v)
                                                          for k, v in r.items()} for r in ranked],
@@ -631,12 +727,13 @@ def diagnose(setup: Setup, log=None) -> dict:
         if not ok:
             break
         accepted.append(cand.name)
+        final_D = D_after
         base = _merge(base, cand.name, allv)
+        remaining = [c for c in remaining if c.name != cand.name]
+        if last:  # no further stage needs the residuals of the all-tree fit (no simulation of it)
+            break
         study.pin(base)
         current_D = study.residual(base)
-        remaining = [c for c in remaining if c.name != cand.name]
-        if not remaining:
-            break
     for r in (rounds[0]["ranking"] if rounds else []):
         if r["name"] not in {e["name"] for e in effects}:
             effects.append({"name": r["name"], "group": r["group"], "parameters": {},
@@ -664,7 +761,6 @@ def diagnose(setup: Setup, log=None) -> dict:
                   # error compensated there), and worse with the fitted values than with the truth
                   "worse_told_truth": st.worse_metrics(D0, D_or, FEATURES),
                   "worse_fitted_than_truth": st.worse_metrics(D_or, D_fit, FEATURES)}
-    final_D = current_D
     rep = {
         "scenario": setup.scenario,
         "metric": setup.metric,
@@ -684,9 +780,11 @@ def diagnose(setup: Setup, log=None) -> dict:
                             for j, f in enumerate(FEATURES)},
         "residual_sd": {f: _nanstd(D0[:, j]) for j, f in enumerate(FEATURES)},
         "oracle": oracle,
-        "cost": {"traced_simulations": study.n_traced, "seconds": round(time.perf_counter() - t0, 1)},
+        "cost": {"traced_simulations": study.n_traced, "traces_read_back": study.n_loaded,
+                 "seconds": round(time.perf_counter() - t0, 1)},
     }
-    log(f"verdict: {verdict} ({study.n_traced} traced simulations, {rep['cost']['seconds']:.0f} s)")
+    log(f"verdict: {verdict} ({study.n_traced} traced simulations, {study.n_loaded} read back from disk, "
+        f"{rep['cost']['seconds']:.0f} s)")
     return _clean(rep)
 
 

@@ -9,7 +9,8 @@ import numpy as np
 
 
 def plot_diagnosis(rep: dict, path) -> Path:
-    """Bar chart of real − simulated per observable (before / after the accepted effects).
+    """Bar chart of real − simulated per observable (before / after the accepted effects, the
+    latter on held-out trees: each fold simulated with the values fitted without it).
 
     Each observable's mean residual is divided by its across-tree SD before the fit (a
     standardised effect size, so that every unit fits one axis).
@@ -27,7 +28,8 @@ def plot_diagnosis(rep: dict, path) -> Path:
     y = np.arange(len(names))
     ax.barh(y - 0.2, b, height=0.4, color="#bbbbbb", label="simulation as given")
     ax.barh(y + 0.2, a, height=0.4, color="#2a7fb8",
-            label="with " + (" + ".join(rep["accepted"]) if rep["accepted"] else "no accepted effect"))
+            label=("with " + " + ".join(rep["accepted"]) + " (held-out trees)") if rep["accepted"]
+            else "no accepted effect")
     mism = {m["metric"] for m in rep["mismatches"]}
     ax.set_yticks(y, [("* " if n in mism else "") + n for n in names], fontsize=7)
     ax.axvline(0, color="k", lw=0.8)
