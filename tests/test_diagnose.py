@@ -301,7 +301,7 @@ def _bare_plot_sim(tmp_path, spill_dir=None):
                  "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
     ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
     ps._traces, ps._sims, ps._pinned, ps.n_traced, ps.n_loaded, ps.log = {}, {}, None, 0, 0, lambda msg: None
-    ps._spill_dir, ps._keep, ps._spilled = spill_dir, set(), {}
+    ps._spill_dir, ps._keep, ps._spilled, ps._n_written = spill_dir, set(), {}, 0
     return ps
 
 
@@ -344,6 +344,7 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     stage asks for them; traces the next stage does not ask for are deleted from disk; the last
     stage writes nothing; without a spill folder everything is traced again."""
     import vlsforest.sim as vsim
+    from vlsforest.diagnose import core
 
     traced = []
 
@@ -377,6 +378,23 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     ps._trace(div(5.0))   # div 2 leaves memory again: already on disk, not written twice
     assert ps.n_traced == 4 and len(list(spill.iterdir())) == 1
     assert len(traced) == 4
+
+    # a trace that cannot be written (a full disk) is traced again instead, and the run goes on
+    def no_space(folder, trace):
+        folder.mkdir()
+        (folder / "part.npy").write_bytes(b"x")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(core, "_save_trace", no_space)
+    notes = []
+    ps.log = notes.append
+    ps.keep([div(6.0), div(7.0)])
+    ps._trace(div(6.0))
+    ps._trace(div(7.0))
+    ps._trace(div(6.0))
+    assert ps.n_traced == 7 and ps.n_loaded == 1
+    assert sum("No space left" in n and "traced again" in n for n in notes) == 2  # div 6, then div 7
+    assert len(list(spill.iterdir())) == 0  # the partial folder is gone (div 2's went with keep())
 
     plain = _bare_plot_sim(tmp_path)  # no spill folder: marks change nothing
     plain.pin({})

@@ -269,6 +269,7 @@ class _PlotSim:
         self._spill_dir = spill_dir
         self._keep: set = set()       # keys of traces written to disk when evicted (a later stage reuses them)
         self._spilled: dict = {}      # key → folder of a trace on disk
+        self._n_written = 0           # traces written so far (names their folders)
         seg = Path(p.segment)
         if not (seg / "trees.csv").is_file():
             raise InputDataError(f"{seg}: no trees.csv (a 'vlsforest segment' output folder is needed)")
@@ -378,11 +379,20 @@ class _PlotSim:
 
     def _evict(self, key) -> None:
         """Drop a trace from memory; first write it to the spill folder if it is kept."""
+        import shutil
+
         trace = self._traces.pop(key)
         if key in self._keep and key not in self._spilled and self._spill_dir is not None:
-            folder = self._spill_dir / f"{self.p.name}-{len(self._spilled)}"
-            _save_trace(folder, trace)
-            self._spilled[key] = folder
+            self._n_written += 1
+            folder = self._spill_dir / f"{self.p.name}-{self._n_written}"
+            try:
+                _save_trace(folder, trace)
+            except OSError as exc:  # e.g. a full disk: the trace is made again when needed
+                shutil.rmtree(folder, ignore_errors=True)
+                self._keep.discard(key)
+                self.log(f"  {self.p.name}: could not keep a trace on disk ({exc}); it is traced again if needed")
+            else:
+                self._spilled[key] = folder
         del trace
 
     def keep(self, assigns: list, spill: bool = True) -> None:
