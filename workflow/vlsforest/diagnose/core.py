@@ -34,7 +34,9 @@ Steps (see the README section "Diagnosis"):
 from __future__ import annotations
 
 import json
+import shutil
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -379,8 +381,6 @@ class _PlotSim:
 
     def _evict(self, key) -> None:
         """Drop a trace from memory; first write it to the spill folder if it is kept."""
-        import shutil
-
         trace = self._traces.pop(key)
         if key in self._keep and key not in self._spilled and self._spill_dir is not None:
             self._n_written += 1
@@ -393,21 +393,22 @@ class _PlotSim:
                 self.log(f"  {self.p.name}: could not keep a trace on disk ({exc}); it is traced again if needed")
             else:
                 self._spilled[key] = folder
-        del trace
 
     def keep(self, assigns: list, spill: bool = True) -> None:
         """The traces of ``assigns`` are this stage's: traces on disk that are not are deleted,
         and (with ``spill``) these are written to disk when they leave memory."""
-        import shutil
-
-        needed = {self._key(_trace_part(a))[0] for a in assigns}
+        needed = {self.trace_key(a) for a in assigns}
         for k in [k for k in self._spilled if k not in needed]:
             shutil.rmtree(self._spilled.pop(k))
         self._keep = needed if spill else set()
 
+    def trace_key(self, assign: dict) -> str:
+        """The key of the trace that ``assign`` renders from (its trace-side part's :meth:`_key`)."""
+        return self._key(_trace_part(assign))[0]
+
     def pin(self, assign: dict) -> None:
         """Keep the trace of ``assign`` (the search's baseline) cached until the next pin."""
-        self._pinned = self._key(_trace_part(assign))[0]
+        self._pinned = self.trace_key(assign)
 
     def features(self, assign: dict) -> pd.DataFrame:
         from vlsforest.sim import redetect
@@ -454,7 +455,7 @@ class _Study:
 
     def has_trace(self, assign: dict) -> bool:
         """Whether every plot holds the ray trace that ``assign`` renders from (no new trace)."""
-        return all(p._key(_trace_part(assign))[0] in p._traces for p in self.plots)
+        return all(p.trace_key(assign) in p._traces for p in self.plots)
 
     def residual(self, assign: dict) -> np.ndarray:
         s = self.sim(assign).reindex(self.real.index)
@@ -635,9 +636,6 @@ def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
         tracing again (up to one per trace-side candidate, ≈ 3.5 GB each on the default forest);
         it is deleted before returning. Without it every trace is made anew when needed.
     """
-    import shutil
-    import tempfile
-
     spill = None
     if work_dir is not None:
         Path(work_dir).mkdir(parents=True, exist_ok=True)
