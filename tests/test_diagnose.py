@@ -414,6 +414,10 @@ def test_diagnosis_leaves_no_spill_folder_behind_when_it_fails(tmp_path):
     with pytest.raises(InputDataError, match="no trees.csv"):
         core.diagnose(setup, log=lambda m: None, work_dir=tmp_path / "out")
     assert (tmp_path / "out").is_dir() and list((tmp_path / "out").iterdir()) == []
+    # a place that cannot hold it (under a file) is one clear error, before any work
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigError, match="cannot hold the diagnosis' temporary traces"):
+        core.diagnose(setup, log=lambda m: None, work_dir=tmp_path / "file" / "out")
 
 
 def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):

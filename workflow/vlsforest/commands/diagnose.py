@@ -54,8 +54,8 @@ def run(args) -> int:
         Path(args.write_sim_config).parent.mkdir(parents=True, exist_ok=True)
         Path(args.write_sim_config).write_text(yaml.safe_dump(d, sort_keys=True))
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     # traces a later stage reads back wait beside the output, in a folder deleted at the end
+    # (diagnose makes the output's folder, or says clearly why it cannot)
     rep = diagnose(setup, log=(lambda m: None) if args.quiet else None, work_dir=out.parent)
     out.write_text(json.dumps(rep, indent=1, sort_keys=True) + "\n")
     if args.figure:

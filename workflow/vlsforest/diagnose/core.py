@@ -638,8 +638,12 @@ def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
     """
     spill = None
     if work_dir is not None:
-        Path(work_dir).mkdir(parents=True, exist_ok=True)
-        spill = Path(tempfile.mkdtemp(prefix=".diagnose-traces-", dir=work_dir))
+        try:
+            Path(work_dir).mkdir(parents=True, exist_ok=True)
+            spill = Path(tempfile.mkdtemp(prefix=".diagnose-traces-", dir=work_dir))
+        except OSError as exc:
+            raise ConfigError(f"{work_dir}: cannot hold the diagnosis' temporary traces there "
+                              f"({exc.strerror or exc})") from None
     try:
         return _diagnose(setup, log or (lambda m: print(f"diagnose: {m}", file=sys.stderr, flush=True)), spill)
     finally:
