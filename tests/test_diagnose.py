@@ -169,6 +169,7 @@ def test_observables_of_a_hand_made_tree():
     ie = np.r_[np.full(50, 0.8), np.full(100, 1.5)]
     assert f["interecho_median"] == pytest.approx(np.median(ie))
     assert f["interecho_short_pct"] == pytest.approx(100 * 50 / 150)
+    assert f["interecho_floor"] == pytest.approx(np.percentile(ie, 1)) and f["interecho_floor"] == pytest.approx(0.8)
     assert f["height"] == pytest.approx(20.0)
     assert f["first_max"] == pytest.approx(20.0)
     assert f["ground_share_pct"] == pytest.approx(100 * 100 / (n_tree_pts + 100), rel=0.05)
@@ -177,6 +178,44 @@ def test_observables_of_a_hand_made_tree():
     assert f["int_p01_rel"] == pytest.approx(np.percentile(inten, 1) / np.percentile(inten, 10))
     assert f["ground_sd_local"] < 0.03  # ground noise σ = 1 cm about local planes
     assert list(tree_features(a, labels, trees).columns) == list(FEATURES)
+
+
+def _detected_tree(separations, window_ns, rng):
+    """Observables of a tree whose pulses each hit two equal crown elements ``separations`` apart
+    (nadir, 30 m above the stem base), detected by the simulator's peak detection."""
+    from vlsforest.sim.waveform import detect_returns
+
+    n = len(separations)
+    top = 100.0 + rng.uniform(0, 2, n)
+    ranges = np.stack([top, top + separations], axis=1).ravel()
+    r = detect_returns(np.arange(0, 2 * n + 1, 2), ranges, np.full(2 * n, 100.0), window_size_ns=window_ns)
+    k = r["pulse"]
+    xy = rng.uniform(-2, 2, (n, 2))[k]
+    a = {"xyz": np.column_stack([xy, 130.0 - r["range"]]), "return_number": r["return_number"],
+         "number_of_returns": r["number_of_returns"], "gps_time": 1000.0 + k * 1e-5,
+         "point_source_id": np.ones(len(k), int), "scan_angle": np.full(len(k), 5.0),
+         "classification": np.full(len(k), 5), "intensity": r["amplitude"]}
+    trees = pd.DataFrame({"tree_id": [7], "x": [0.0], "y": [0.0], "z": [0.0], "crown_radius": [3.0]})
+    return tree_features(a, np.full(len(k), 7), trees).loc[7]
+
+
+def test_interecho_floor_follows_the_dead_zone_not_the_spacing_of_the_crown():
+    """The closest echo pairs a sensor separates are its dead zone: a crown whose elements are
+    spaced differently (a voxel reconstruction's) moves the inter-echo percentiles, not the
+    floor; a shorter detection window moves the floor."""
+    rng = np.random.default_rng(11)
+    leaves = _detected_tree(rng.uniform(0.1, 4.0, 4000), 1.5, rng)
+    cubes = _detected_tree(rng.uniform(0.1, 2.0, 4000), 1.5, rng)  # the same sensor, closer elements
+    short = _detected_tree(rng.uniform(0.1, 4.0, 4000), 1.0, rng)  # the same crown, a shorter window
+    long = _detected_tree(rng.uniform(0.1, 4.0, 4000), 3.0, rng)   # and a longer one
+    assert cubes["interecho_p10"] < leaves["interecho_p10"] - 0.1
+    assert cubes["interecho_median"] < leaves["interecho_median"] - 0.5
+    assert cubes["interecho_floor"] == pytest.approx(leaves["interecho_floor"], abs=0.03)
+    # the physical peak rule cannot separate peaks closer than c · window (0.45 m at 1.5 ns, 0.30 m
+    # at 1.0 ns, 0.90 m at 3 ns); the 4 ns pulse's own width merges pairs up to ≈ 0.6 m
+    assert 0.45 <= leaves["interecho_floor"] <= 0.75
+    assert short["interecho_floor"] < leaves["interecho_floor"] - 0.05
+    assert long["interecho_floor"] >= 0.9 - 0.08  # within one 0.25 ns waveform bin of c · window
 
 
 def test_ground_observables_see_range_and_strip_noise():

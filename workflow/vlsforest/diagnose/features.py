@@ -14,7 +14,12 @@ Observables (columns of :func:`tree_features`):
 * ``first_p50``, ``first_p90``, ``first_max`` — heights of first returns;
 * ``interecho_median``, ``interecho_p10``, ``interecho_short_pct`` — 3-D distance between
   consecutive echoes of one pulse within the tree, and the % of those below
-  :data:`SHORT_ECHO_M` (the dead zone's cut-off shows here);
+  :data:`SHORT_ECHO_M`;
+* ``interecho_floor`` — the 1st percentile of those distances: the closest echo pairs the
+  sensor separates, i.e. its dead zone (pulse width and peak-detection window), whatever the
+  voxel model. The other inter-echo observables also follow the spacing of the crown's
+  elements, which a voxel reconstruction gets wrong; this one is where a dead-zone change shows
+  and the reconstruction hardly does;
 * ``multi_pct_nadir`` / ``multi_pct_offnadir`` and ``rpp_nadir`` / ``rpp_offnadir`` — multiple
   returns and returns per pulse in two scan-angle strata (|angle| < :data:`ANGLE_SPLIT_DEG` and
   above);
@@ -53,7 +58,7 @@ STUDY_METRICS = ("height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "m
 FEATURES = STUDY_METRICS + (
     "returns_per_pulse", "rn1_share", "rn2_share", "rn3plus_share",
     "first_p50", "first_p90", "first_max",
-    "interecho_median", "interecho_p10", "interecho_short_pct",
+    "interecho_median", "interecho_p10", "interecho_short_pct", "interecho_floor",
     "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
     "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
     "int_p01_rel", "int_p05_rel", "int_floor",
@@ -64,7 +69,8 @@ STRATUM = {
     "returns_per_pulse": "pulses", "rn1_share": "return number 1", "rn2_share": "return number 2",
     "rn3plus_share": "return number ≥ 3", "first_p50": "first returns", "first_p90": "first returns",
     "first_max": "first returns (tree top)", "interecho_median": "echo pairs of a pulse",
-    "interecho_p10": "echo pairs of a pulse", "interecho_short_pct": f"echo pairs < {SHORT_ECHO_M:g} m",
+    "interecho_p10": "echo pairs of a pulse", "interecho_floor": "closest echo pairs of a pulse (1 %)",
+    "interecho_short_pct": f"echo pairs < {SHORT_ECHO_M:g} m",
     "multi_pct_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "multi_pct_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
     "rpp_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "rpp_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
     "crown_extent_ratio": "crown (along x / along y)", "ground_share_pct": "ground under the crown",
@@ -298,6 +304,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
         if len(ie) >= 10:
             row["interecho_median"], row["interecho_p10"] = _pct(ie, 50), _pct(ie, 10)
             row["interecho_short_pct"] = 100.0 * float(np.mean(ie < SHORT_ECHO_M))
+            row["interecho_floor"] = _pct(ie, 1)
         for suffix, sel in (("nadir", ang < ANGLE_SPLIT_DEG), ("offnadir", ang >= ANGLE_SPLIT_DEG)):
             row[f"multi_pct_{suffix}"], row[f"rpp_{suffix}"] = _multi_and_rpp(key[sel], nret[sel])
         crown = p[p[:, 2] - float(t.z) >= row["cbh"]] if np.isfinite(row["cbh"]) else p
