@@ -12,6 +12,7 @@ then the pass rates of the issue's criteria. Writes ``--out`` (CSV).
 
     python benchmarks/bench_diagnose.py --seeds 0 1 2 --cases all --workdir /tmp/diag
     python benchmarks/bench_diagnose.py --seeds 0 1 2 3 4 5 6 7 8 9 --cases null   # 10 null runs
+    python benchmarks/bench_diagnose.py --seeds 2 --cases null --real-quality 5 --sim-quality 5 --truth-scene
 
 One case on 2 cores: 46–435 s and 4–20 traced simulations (session 7), plus ≈ 4 min per forest
 seed for the quick workflow and ≈ 1 min per case to record; the campaign (3 seeds × 6 cases,
@@ -100,9 +101,27 @@ def _record(seed: int, case: str, workdir: Path) -> Path:
     return out
 
 
-def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim_quality: int | None = None) -> dict:
-    """Diagnose one case blind; return its row (criteria measured against the hidden values)."""
+def _truth_scene(seed: int):
+    """The quick forest's true leaf-level ULS scene of plot Q1 (what the "real" ULS was recorded
+    from), for the separating check ``--truth-scene``."""
+    from conftest import QUICK_SYNTH
+    from vlsforest.synth.forest import forest_from_config, generate_plot_trees
+    from vlsforest.synth.record import plot_scene, synth_settings
+
+    plot = next(p for p in forest_from_config(synth_settings(QUICK_SYNTH)["forest"], seed) if p.name == "Q1")
+    return plot_scene(plot, generate_plot_trees(plot), "uls", {})
+
+
+def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim_quality: int | None = None,
+              truth_scene: bool = False) -> dict:
+    """Diagnose one case blind; return its row (criteria measured against the hidden values).
+
+    With ``truth_scene`` the diagnosis simulates the true leaves instead of the voxel
+    reconstruction (a check, not the issue's setting: it separates the reconstruction's share of
+    a mismatch from the rest).
+    """
     from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
+    from vlsforest.sim import Scene
 
     wd = _quick_view(seed, workdir)
     res = wd / "results" / "Q1"
@@ -118,10 +137,17 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
         setup.candidates_given = True
     setup.oracle = CASES[case][1] or None
     setup.metric = metric
-    t0 = time.perf_counter()
-    rep = diagnose(setup, log=lambda m: None, work_dir=workdir / f"seed{seed}")  # traces read back: on disk there
-    dt = time.perf_counter() - t0
-    sq = "" if sim_quality is None else f"_sim{sim_quality}"
+    from_yaml = Scene.__dict__["from_yaml"]
+    if truth_scene:  # every scene the diagnosis loads is the truth (tls_occlusion is then left out)
+        truth = _truth_scene(seed)
+        Scene.from_yaml = classmethod(lambda cls, path, voxel_transform=None: truth)
+    try:
+        t0 = time.perf_counter()
+        rep = diagnose(setup, log=lambda m: None, work_dir=workdir / f"seed{seed}")  # traces read back: on disk there
+        dt = time.perf_counter() - t0
+    finally:
+        Scene.from_yaml = from_yaml
+    sq = ("" if sim_quality is None else f"_sim{sim_quality}") + ("_truth" if truth_scene else "")
     (workdir / f"seed{seed}" / (case + _tag()) / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}{sq}.json").write_text(json.dumps(rep, indent=1))
     top = rep["effects"][0] if rep["effects"] else {}
     hidden = CASES[case][1]
@@ -139,7 +165,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
         # share of the recoverable error (given − told the truth) that the accepted fits remove
         removed = (o["error_given"] - o["error_fitted"]) / recov
     return {"seed": seed, "case": case, "metric": metric, "real_quality": BASE["uls"]["beam_sample_quality"],
-            "sim_quality": sim_quality, "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
+            "sim_quality": sim_quality, **({"sim_scene": "truth"} if truth_scene else {}), "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
             "top": top.get("name"), "top_group": top.get("group"),
             "top_ev": top.get("explained_fraction"), "second": (rep["effects"][1]["name"] if len(rep["effects"]) > 1 else None),
             "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
@@ -200,6 +226,10 @@ def main(argv=None) -> int:
     ap.add_argument("--sim-quality", type=int, default=None,
                     help="beam sample quality of the diagnosis' own simulations (sim-config "
                          "beam_sample_quality; default: the survey's, 3); runs are kept apart by it")
+    ap.add_argument("--truth-scene", action="store_true",
+                    help="simulate the true leaves of the plot instead of its voxel reconstruction "
+                         "(a check that separates the reconstruction's share of a mismatch; runs are "
+                         "kept apart by it)")
     a = ap.parse_args(argv)
     BASE["uls"]["beam_sample_quality"] = a.real_quality
     import pandas as pd
@@ -211,19 +241,21 @@ def main(argv=None) -> int:
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
-        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", REAL_QUALITY), r.get("sim_quality"))
-                for r in done}
+        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", REAL_QUALITY),
+                 r.get("sim_quality"), r.get("sim_scene", "voxels")) for r in done}
+        scene = "truth" if a.truth_scene else "voxels"
         for seed in a.seeds:
             for case in cases:
-                if (seed, case, a.metric, a.real_quality, a.sim_quality) in have:
+                if (seed, case, a.metric, a.real_quality, a.sim_quality, scene) in have:
                     continue
-                row = _run_case(seed, case, a.workdir, a.metric, a.sim_quality)
+                row = _run_case(seed, case, a.workdir, a.metric, a.sim_quality, a.truth_scene)
                 print(json.dumps(row), flush=True)
                 with out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
     done = [r for r in done if r.get("metric", "diagonal") == a.metric
-            and r.get("real_quality", REAL_QUALITY) == a.real_quality and r.get("sim_quality") == a.sim_quality]
+            and r.get("real_quality", REAL_QUALITY) == a.real_quality and r.get("sim_quality") == a.sim_quality
+            and r.get("sim_scene", "voxels") == ("truth" if a.truth_scene else "voxels")]
     if done:
         summarise(pd.DataFrame(done))
     return 0
