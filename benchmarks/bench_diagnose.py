@@ -121,6 +121,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
     a mismatch from the rest).
     """
     from vlsforest.diagnose import CANDIDATES, diagnose, load_setup
+    from vlsforest.diagnose.features import FEATURES
     from vlsforest.sim import Scene
 
     wd = _quick_view(seed, workdir)
@@ -179,7 +180,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
             "worse_told_truth": "+".join(o.get("worse_told_truth", [])),
             "worse_fitted_than_truth": "+".join(o.get("worse_fitted_than_truth", [])),
             "traced": rep["cost"]["traced_simulations"], "read_back": rep["cost"].get("traces_read_back", 0),
-            "seconds": round(dt, 1)}
+            "seconds": round(dt, 1), "observables": len(FEATURES)}
 
 
 def summarise(df) -> None:
