@@ -32,9 +32,8 @@ def main(argv=None) -> int:
     ap.add_argument("--windows", type=float, nargs="+", default=[1.5, 1.42, 1.0])
     a = ap.parse_args(argv)
     from vlsforest.diagnose import core, load_setup
-    from vlsforest.diagnose.features import _interecho, _pulse_key, cloud_arrays
+    from vlsforest.diagnose.features import _interecho, _pulse_key
     from vlsforest.extract import _ColumnIndex
-    from vlsforest.io.las import read_las
 
     wd = a.workdir / f"seed{a.seed}"
     real = wd / ("null" + ("" if a.real_quality == 4 else f"_q{a.real_quality}")) / "forest" / "plots"
@@ -43,7 +42,16 @@ def main(argv=None) -> int:
         raise SystemExit(f"{real}: run bench_diagnose.py --seeds {a.seed} --cases null "
                          f"--real-quality {a.real_quality} first")
     setup = load_setup(cfg, real_dir=real)
+    captured = {}  # the arrays of the last cloud whose observables were computed
+    features = core._PlotSim._features
+
+    def capture(self, arrays):
+        captured["arrays"] = arrays
+        return features(self, arrays)
+
+    core._PlotSim._features = capture
     ps = core._PlotSim(setup.plots[0], 0, setup.workers, lambda m: None, a.sim_quality, None)
+    real_arrays = captured["arrays"]  # the "real" ULS, read once by the diagnosis itself
 
     def per_tree(arrays):
         lab = ps._label(arrays, _ColumnIndex(arrays["xyz"][:, :2]))
@@ -57,15 +65,7 @@ def main(argv=None) -> int:
         return "  ".join(f"p{q:g} {m:.3f} ± {s:.3f}" for q, m, s in zip(QUANTILES, r.mean(0), r.std(0))) + f"  ({len(r)} trees)"
 
     print(f"seed {a.seed}, real ULS at quality {a.real_quality}, simulation at {a.sim_quality} (m, mean ± SD over trees)")
-    print(f"{'real':>18s}  {per_tree(cloud_arrays(read_las(ps.p.real)))}", flush=True)
-    captured = {}
-    features = core._PlotSim._features
-
-    def capture(self, arrays):
-        captured["arrays"] = arrays
-        return features(self, arrays)
-
-    core._PlotSim._features = capture
+    print(f"{'real':>18s}  {per_tree(real_arrays)}", flush=True)
     for w in a.windows:
         ps.features({"waveform_window": {"window_ns": w}})
         print(f"{f'voxels, {w:g} ns':>18s}  {per_tree(captured['arrays'])}", flush=True)
