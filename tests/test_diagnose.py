@@ -709,7 +709,7 @@ class _LinearStudy:
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
     has_scaled = True
 
-    def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5):
+    def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5, equal_footprints=False):
         rng = np.random.default_rng(seed)
         nf = len(FEATURES)
         self.n_traced = self.n_loaded = 0
@@ -721,6 +721,8 @@ class _LinearStudy:
                       "reflectance": 1.0, "waveform_window": 1.0, "max_returns": 1.0, "range_noise": 20.0,
                       "trajectory_noise": 20.0, "incidence_reflectance": 3.0, "tls_occlusion": 1.0}
         self.G["elliptical_footprint"] = self.G["beam_divergence"] * 0.6 + 0.8 * rng.normal(size=nf)
+        if equal_footprints:  # the ellipse changes every observable as the circle does
+            self.G["elliptical_footprint"] = self.G["beam_divergence"].copy()
         recon_err = recon * rng.normal(size=nf) + 0.7 * rng.normal(size=(n_trees, nf))
         self.index = pd.MultiIndex.from_product([["Q"], range(1, n_trees + 1)], names=["plot", "tree_id"])
         real = self.base + recon_err + self._response(hidden) + out_of_library * rng.normal(size=nf)
@@ -964,3 +966,33 @@ def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved(
               {"name": "beam_divergence", "group": "footprint", "score": 0.75}]
     out, note = _tie_break(ranked, same, cosm, D, w)
     assert not note["resolved"] and note["winner"] == "beam_divergence" and "not separated" in note["text"]
+
+
+def test_equivalent_circular_divergence_is_the_geometric_mean_of_the_fwhm_axes():
+    survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}}
+    k = float(np.sqrt(2.0 / np.log(2.0)))  # FWHM → 1/e² full width of a Gaussian beam
+    # the survey's own beam: 0.5 mrad at 1/e²
+    assert lib.equivalent_circular_divergence(survey, {}) == pytest.approx(0.5 / k)
+    assert lib.equivalent_circular_divergence(survey, {"beam_divergence": {"scale": 3.0}}) == pytest.approx(1.5 / k)
+    ell = {"elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5}}
+    assert lib.equivalent_circular_divergence(survey, ell) == pytest.approx(np.sqrt(0.8))
+    # an ellipse sets both axes: a divergence scale applied before it does not count (as in the
+    # diagnosis' simulations, which apply the candidates in the same order)
+    assert lib.equivalent_circular_divergence(survey, {**ell, "beam_divergence": {"scale": 3.0}}) == \
+        pytest.approx(np.sqrt(0.8))
+    assert survey["overrides"] == {"window_size_ns": 1.5}
+
+
+def test_an_unseparated_footprint_group_reports_the_solid_angle_it_fits(monkeypatch):
+    """An ellipse whose signature equals the circle's everywhere (the tie-breakers included):
+    the circle is fitted for the group, and the report and verdict say which beams it stands for."""
+    study = _LinearStudy({"elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5}}, equal_footprints=True)
+    rep = _run_logic(monkeypatch, study)
+    assert rep["accepted"][:1] == ["beam_divergence"], rep["verdict"]
+    tie = rep["rounds"][0]["tie"]
+    assert tie is not None and not tie["resolved"] and tie["winner"] == "beam_divergence"
+    fit = rep["effects"][0]
+    eq = fit["equivalent_circular_fwhm_mrad"]
+    assert eq == pytest.approx(fit["parameters"]["scale"] * 0.5 / lib._FWHM_TO_1E2)
+    assert f"{eq * eq:.3g} mrad²" in rep["verdict"] and "ellipse and circle not separated" in rep["verdict"]
+    assert "aspect ratios are not identified" in tie["text"]

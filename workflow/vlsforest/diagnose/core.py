@@ -688,6 +688,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
     folds[order] = np.arange(len(D0)) % setup.folds
 
     effects, accepted, rounds = [], [], []
+    group_note = {}  # accepted effect → what it stands for when its group's members were not separated
     current_D = D0
     final_D = D0  # the held-out residuals after the last accepted effect
     remaining = list(cands)
@@ -734,6 +735,15 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                         "worse_metrics": worse, "heldout_mean_residual": change,
                         "at_prior_bound": bool(at_bound), "accepted": bool(ok),
                         "per_fold": per_fold, "stage": stage + 1})
+        if cand.group == "footprint":  # what every member of the group would fit: the solid angle
+            eq = lib.equivalent_circular_divergence(study.survey, _merge(base, cand.name, allv))
+            effects[-1]["equivalent_circular_fwhm_mrad"] = eq
+            if tie is not None and not tie["resolved"] and tie["winner"] == cand.name:
+                tie["text"] += (f"; it fits a beam of the solid angle of a {eq:.3g} mrad (FWHM) circle, i.e. any "
+                                f"beam with major × minor = {eq * eq:.3g} mrad² (the members' aspect ratios are "
+                                f"not identified)")
+                group_note[cand.name] = (f" (for the footprint group: a beam of major × minor = {eq * eq:.3g} mrad² "
+                                         f"at FWHM; ellipse and circle not separated)")
         log(f"  fitted {cand.name} = {allv} (CI {ci}); held-out error {eb:.3f} → {ea:.3f}, p = {p:.3g}"
             f"{'; worse: ' + ', '.join(worse) if worse else ''} → {'accepted' if ok else 'rejected'}")
         if not ok:
@@ -755,7 +765,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
     if not significant:
         verdict = "no significant mismatch"
     elif accepted:
-        verdict = "mismatch explained by " + " + ".join(accepted)
+        verdict = "mismatch explained by " + " + ".join(a + group_note.get(a, "") for a in accepted)
         worse = sorted({m for e in effects if e.get("accepted") for m in e.get("worse_metrics", [])})
         if worse:
             verdict += f" (held-out {', '.join(worse)} got worse: the voxel model's own error compensated there)"

@@ -235,6 +235,38 @@ def occlusion_corrected(model, top_gain: float):
     return VoxelModel(model.size, model.ijk, model.owner, half, centre, pad)
 
 
+def equivalent_circular_divergence(survey: dict, assign: dict) -> float:
+    """FWHM divergence (mrad) of the circular beam with the same solid angle as the beam of
+    ``survey`` with the candidates ``assign`` (id → values) applied: √(major · minor).
+
+    The footprint group's members look alike on tree metrics when their beams have equal solid
+    angles (the Gaussian beam's irradiance, hence which elements it detects, scales with
+    1 / (major · minor)); when the group's separating observables do not separate an ellipse
+    from a circle, this is the quantity the fitted member identifies.
+
+    Parameters
+    ----------
+    survey : dict
+        The survey mapping (``scanner`` and optional ``overrides``).
+    assign : dict
+        Candidate id → parameter values (e.g. ``{"beam_divergence": {"scale": 2.0}}``); the
+        candidates are applied in the same order as the diagnosis' simulations.
+
+    Returns
+    -------
+    float
+    """
+    from vlsforest.sim.scanner import PRESETS
+
+    s = survey
+    for name in sorted(assign):
+        s, _ = CANDIDATES[name].apply(s, assign[name])
+    ov = s.get("overrides") or {}
+    div = ov.get("beam_divergence_mrad", PRESETS[s["scanner"]].beam_divergence_mrad)
+    div = (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
+    return float(np.sqrt(div[0] * div[1]) / _FWHM_TO_1E2)
+
+
 #: observables that separate the members of a group (named in the report when a group ties)
 TIE_BREAKERS = {
     "footprint": ("crown_extent_ratio", "multi_pct_nadir", "multi_pct_offnadir"),
