@@ -195,7 +195,6 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
             "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
             "fitted": json.dumps({e["name"]: e["parameters"] for e in acc}),
             "fit_rel_error": max(fit_err.values()) if fit_err else None,
-            "fit_rel_error_group": _group_fit_error(case, {e["name"]: e["parameters"] for e in acc}),
             "hidden_found": "+".join(sorted(n for n in hidden if n in rep["accepted"] or
                                              any(CANDIDATES[n].group == CANDIDATES[a].group for a in rep["accepted"]))),
             "error_given": o.get("error_given"), "error_told_truth": o.get("error_told_truth"),

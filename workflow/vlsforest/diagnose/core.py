@@ -316,12 +316,7 @@ class _PlotSim:
 
     def _survey_for(self, assign):
         """The survey mapping and the scene edits (merged) of a parameter assignment."""
-        s, edits = dict(self.survey), {"reflectance_scale": 1.0}
-        for name in sorted(assign):
-            s, e = lib.CANDIDATES[name].apply(s, assign[name])
-            edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
-            edits.update(e)
-        return s, edits
+        return lib.apply_all(dict(self.survey), assign)
 
     def _scene_for(self, edits):
         """The plot's scene, or its voxel reconstruction corrected for TLS occlusion."""

@@ -302,8 +302,8 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
                 row["int_p01_rel"], row["int_p05_rel"] = _pct(inten, 1) / p10, _pct(inten, 5) / p10
         ie = _interecho(p, key, rn)
         if len(ie) >= 10:
-            med, p10, floor = np.percentile(ie, (50, 10, 1))  # one partition for the three
-            row["interecho_median"], row["interecho_p10"], row["interecho_floor"] = float(med), float(p10), float(floor)
+            med, ie_p10, floor = np.percentile(ie, (50, 10, 1))  # one partition for the three
+            row["interecho_median"], row["interecho_p10"], row["interecho_floor"] = float(med), float(ie_p10), float(floor)
             row["interecho_short_pct"] = 100.0 * float(np.mean(ie < SHORT_ECHO_M))
         for suffix, sel in (("nadir", ang < ANGLE_SPLIT_DEG), ("offnadir", ang >= ANGLE_SPLIT_DEG)):
             row[f"multi_pct_{suffix}"], row[f"rpp_{suffix}"] = _multi_and_rpp(key[sel], nret[sel])

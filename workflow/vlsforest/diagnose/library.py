@@ -49,6 +49,32 @@ from vlsforest.sim.scanner import fwhm_to_1e2
 _FWHM_TO_1E2 = float(fwhm_to_1e2(1.0))
 
 
+def _divergence(survey: dict) -> tuple[float, float]:
+    """The survey's beam divergence (major, minor) in mrad at 1/e²: its override, else the preset's."""
+    from vlsforest.sim.scanner import PRESETS
+
+    div = (survey.get("overrides") or {}).get("beam_divergence_mrad",
+                                               PRESETS[survey["scanner"]].beam_divergence_mrad)
+    return (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
+
+
+def apply_all(survey: dict, assign: dict) -> tuple[dict, dict]:
+    """``survey`` with every candidate of ``assign`` (id → values) applied, in the one order
+    the diagnosis uses (by id), and their scene edits merged (reflectance scales multiply).
+
+    Returns
+    -------
+    (dict, dict)
+        The survey mapping and the scene edits (``reflectance_scale`` always present).
+    """
+    s, edits = survey, {"reflectance_scale": 1.0}
+    for name in sorted(assign):
+        s, e = CANDIDATES[name].apply(s, assign[name])
+        edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
+        edits.update(e)
+    return s, edits
+
+
 @dataclass(frozen=True)
 class Param:
     """One parameter of a candidate: bounds, a reference perturbation and a grid scale."""
@@ -77,8 +103,7 @@ class Candidate:
 
         ov = survey.get("overrides") or {}
         pre = PRESETS[survey["scanner"]]
-        div = ov.get("beam_divergence_mrad", pre.beam_divergence_mrad)
-        div = (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
+        div = _divergence(survey)
         tn = survey.get("trajectory_noise") or {}
         return {
             "beam_divergence": {"scale": 1.0},
@@ -130,16 +155,12 @@ class Candidate:
             reflectance), ``specularity`` (Phong ks of every part, shininess
             :data:`SHININESS`), ``top_gain`` (see :func:`occlusion_corrected`).
         """
-        from vlsforest.sim.scanner import PRESETS
-
         s = copy.deepcopy(survey)
         ov = dict(s.get("overrides") or {})
-        pre = PRESETS[s["scanner"]]
         edits = {}
         if self.name == "beam_divergence":
-            div = ov.get("beam_divergence_mrad", pre.beam_divergence_mrad)
-            div = (div, div) if np.isscalar(div) else div
-            ov["beam_divergence_mrad"] = [float(div[0]) * values["scale"], float(div[1]) * values["scale"]]
+            div = _divergence(s)
+            ov["beam_divergence_mrad"] = [div[0] * values["scale"], div[1] * values["scale"]]
         elif self.name == "elliptical_footprint":
             ov["beam_divergence_mrad"] = [values["major_mrad"] * _FWHM_TO_1E2, values["minor_mrad"] * _FWHM_TO_1E2]
             ov["beam_orientation_deg"] = 0.0
@@ -256,15 +277,8 @@ def equivalent_circular_divergence(survey: dict, assign: dict) -> float:
     -------
     float
     """
-    from vlsforest.sim.scanner import PRESETS
-
-    s = survey
-    for name in sorted(assign):
-        s, _ = CANDIDATES[name].apply(s, assign[name])
-    ov = s.get("overrides") or {}
-    div = ov.get("beam_divergence_mrad", PRESETS[s["scanner"]].beam_divergence_mrad)
-    div = (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
-    return float(np.sqrt(div[0] * div[1]) / _FWHM_TO_1E2)
+    major, minor = _divergence(apply_all(survey, assign)[0])
+    return float(np.sqrt(major * minor) / _FWHM_TO_1E2)
 
 
 #: observables that separate the members of a group (named in the report when a group ties)
