@@ -18,7 +18,8 @@ Steps (see the README section "Diagnosis"):
    not separate the members either (explained fractions within 0.05), the report says so and the
    simplest member is fitted on behalf of the group.
 3. **Model** — the winner's parameter(s) are fitted on a grid (one simulation per grid point,
-   shared by all folds; two-parameter candidates by coordinate search): each observable whose
+   shared by all folds; several parameters by coordinate search; the ellipse along its aspect
+   ratio at the solid angle of the beam simulated so far): each observable whose
    mean residual changes sign along the grid votes for its crossing, and the weighted median of
    the votes is the estimate (:func:`.stats.robust_fit`; observables dominated by errors the
    candidate cannot remove do not vote); k-fold across trees: each fold's value is fitted on
@@ -28,7 +29,9 @@ Steps (see the README section "Diagnosis"):
    Then a second effect is sought the same way on top of the first.
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the
-   fitted values with bootstrap CIs, the minimum detectable effect per candidate and the cost.
+   fitted values with bootstrap CIs, the minimum detectable effect per candidate and the cost;
+   ``model`` (the accepted candidates' values, as simulated) and ``beam_fwhm_mrad`` (the beam
+   they make, major and minor divergence at FWHM).
 """
 
 from __future__ import annotations
@@ -474,10 +477,7 @@ class _Study:
         return self.plots[0].survey
 
 
-def _merge(base: dict, name: str, values: dict) -> dict:
-    out = {k: dict(v) for k, v in base.items()}
-    out[name] = dict(values)
-    return out
+_merge = lib.merge
 
 
 def _grid(par: lib.Param, lo: float, hi: float, base: float, n: int) -> np.ndarray:
@@ -514,7 +514,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
     else:
         project = st.project
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
-    steps = {c.name: c.step(base.get(c.name, c.baseline(study.survey)), study.survey) for c in cands}
+    steps = {c.name: c.step(c.current(study.survey, base), study.survey) for c in cands}
     study.keep([_merge(base, c.name, steps[c.name]) for c in cands], spill=not last)
     # simulate the candidates whose trace is still held first: a trace-side candidate traced last
     # in the previous round is not traced again after the others evicted it (same results)
@@ -522,7 +522,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
         study.sim(_merge(base, c.name, steps[c.name]))
     rows, sigs = [], {}
     for c in cands:
-        cur = base.get(c.name, c.baseline(study.survey))
+        cur = c.coords(c.current(study.survey, base))
         p0 = c.params[0]
         lo = c.bounds(study.survey)[p0.name][0]
         pert = steps[c.name]
@@ -530,7 +530,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
         J = np.nanmean(S1 - S0, axis=0)  # common random numbers: same pulses and seed
         sigs[c.name] = J
         a, ev, cos = project(rbar, J, w)
-        step = pert[p0.name] - cur[p0.name]
+        step = c.coords(pert)[p0.name] - cur[p0.name]
         implied = cur[p0.name] + a * step
         possible = bool(implied >= lo - 1e-9)  # below the lower bound: a physically impossible sign
         score = (ev if possible else 0.0) - PENALTY * len(c.params)
@@ -567,7 +567,7 @@ def _tie_break(ranked, sigs, cosm, D0, w):
     if resolved:
         winner = scored[0][1]
     else:  # the separating observables do not separate: the simplest member speaks for the group
-        winner = min((n for _, n in scored), key=lambda n: (len(lib.CANDIDATES[n].params), n != lead["name"]))
+        winner = min((n for _, n in scored), key=lambda n: (len(lib.CANDIDATES[n].value_keys), n != lead["name"]))
     note = {"group": lead["group"], "members": [n for _, n in scored], "tie_breakers": list(tb),
             "explained_on_tie_breakers": {n: round(float(e), 3) for e, n in scored}, "winner": winner,
             "resolved": bool(resolved),
@@ -581,8 +581,11 @@ def _tie_break(ranked, sigs, cosm, D0, w):
 
 def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: np.ndarray, n_grid: int,
          rng: np.random.Generator):
-    """Grid fit of a candidate (coordinate search over its parameters); per-fold and all-tree values."""
-    cur = dict(base.get(cand.name, cand.baseline(study.survey)))
+    """Grid fit of a candidate (coordinate search over its searched parameters, from the values
+    ``base`` simulates); per-fold and all-tree values (as :meth:`Candidate.apply` takes them),
+    and the bootstrap CI of the first searched parameter."""
+    start = cand.current(study.survey, base)
+    cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
     k = int(folds.max()) + 1
     per_fold = [dict(cur) for _ in range(k)]
@@ -595,7 +598,7 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         for v in g:
             val = dict(allv)
             val[par.name] = float(v)
-            Ds.append(study.residual(_merge(base, cand.name, val)))
+            Ds.append(study.residual(_merge(base, cand.name, cand.values(start, val))))
         curves[par.name] = (g, Ds)
         lg = par.log and lo > 0
         allv[par.name] = st.robust_fit(g, Ds, w, lo, hi, lg)
@@ -615,7 +618,7 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         rows = rng.integers(0, n, n)
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
     ci = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
-    return allv, per_fold, ci
+    return cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci
 
 
 def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
@@ -719,12 +722,12 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # accepted on the held-out total error; observables that got significantly worse are
         # reported (the voxel model's own error there was compensating the missing physics)
         ok = p < ALPHA and ea < eb
-        at_bound = any(np.isclose(allv[q.name], b, rtol=1e-3) for q in cand.params
+        at_bound = any(np.isclose(cand.coords(allv)[q.name], b, rtol=1e-3) for q in cand.params
                        for b in cand.bounds(study.survey)[q.name])
         change = {f: {"before": _nanmean(current_D[:, j]), "after": _nanmean(D_after[:, j])}
                   for j, f in enumerate(FEATURES)}
         effects.append({"name": cand.name, "group": cand.group, "parameters": {k: float(v) for k, v in allv.items()},
-                        "ci95": {cand.params[0].name: ci}, "baseline": cand.baseline(study.survey),
+                        "ci95": {cand.params[0].name: ci}, "baseline": cand.current(study.survey, base),
                         "explained_fraction": float(lead["explained_fraction"]),
                         "heldout_error_before": eb, "heldout_error_after": ea, "p_value": p,
                         "worse_metrics": worse, "heldout_mean_residual": change,
@@ -757,6 +760,10 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                             "explained_fraction": r["explained_fraction"], "heldout_error_before": None,
                             "heldout_error_after": None, "p_value": None, "accepted": False,
                             "stage": None})
+    beam = lib.beam_fwhm(study.survey, base)  # the beam the accepted effects simulate
+    if "elliptical_footprint" in accepted:  # its aspect identified: the group stands for this beam
+        group_note.pop("beam_divergence", None)
+        group_note["elliptical_footprint"] = f" (the beam: {beam[0]:.3g} × {beam[1]:.3g} mrad at FWHM)"
     if not significant:
         verdict = "no significant mismatch"
     elif accepted:
@@ -788,6 +795,8 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         "mismatches": mism,
         "effects": effects,
         "accepted": accepted,
+        "model": base,
+        "beam_fwhm_mrad": [float(beam[0]), float(beam[1])],
         "verdict": verdict,
         "rounds": rounds,
         "minimum_detectable_effect": mde,

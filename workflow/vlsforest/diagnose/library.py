@@ -9,8 +9,8 @@ diagnosed (the study's simulation setting: circular beam, no threshold, no noise
 id                        parameter(s)            group        render          prior range
 ========================  ======================  ===========  ==============  =====================
 ``beam_divergence``       ``scale``               footprint    re-trace        0.5 – 4
-``elliptical_footprint``  ``major_mrad``,         footprint    re-trace        major 1 – 6 × minor;
-                          ``minor_mrad`` (FWHM)                                minor 0.3 – 3 × base
+``elliptical_footprint``  ``major_mrad``,         footprint    re-trace        aspect major/minor
+                          ``minor_mrad`` (FWHM)                                1 – 6 (searched)
 ``detection_threshold``   ``min_energy``          link budget  stored hits     0 – 1e5 (amplitude)
 ``reflectance``           ``scale`` (all parts)   link budget  stored hits     0.2 – 2
 ``incidence_reflectance`` ``specularity``         link budget  stored hits     0 – 0.9 (Phong ks,
@@ -32,6 +32,14 @@ cells the TLS never hit cannot be restored by it.
 
 Groups are the declared look-alikes on tree metrics; within a group the diagnosis names the
 observables that separate the members (:data:`TIE_BREAKERS`).
+
+The footprint group splits the beam into its size and its shape. ``beam_divergence`` scales
+the beam's solid angle and is applied after every other candidate (it scales whatever beam they
+set); ``elliptical_footprint`` is searched along its aspect ratio at the solid angle of the beam
+being simulated (:meth:`Candidate.current`: the survey's beam, or the one a fitted divergence
+scale made), so its values are the whole beam and replace that scale (:func:`merge`). A
+circle fitted first for the group and an ellipse fitted after it thus give the ellipse of the
+fitted solid angle, not a second scaling of it.
 """
 
 from __future__ import annotations
@@ -58,9 +66,14 @@ def _divergence(survey: dict) -> tuple[float, float]:
     return (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
 
 
+#: candidates applied after all others: a scale of whatever beam the others set
+_APPLIED_LAST = ("beam_divergence",)
+
+
 def apply_all(survey: dict, assign: dict) -> tuple[dict, dict]:
     """``survey`` with every candidate of ``assign`` (id → values) applied, in the one order
-    the diagnosis uses (by id), and their scene edits merged (reflectance scales multiply).
+    the diagnosis uses (by id, the divergence scale last), and their scene edits merged
+    (reflectance scales multiply).
 
     Returns
     -------
@@ -68,7 +81,7 @@ def apply_all(survey: dict, assign: dict) -> tuple[dict, dict]:
         The survey mapping and the scene edits (``reflectance_scale`` always present).
     """
     s, edits = survey, {"reflectance_scale": 1.0}
-    for name in sorted(assign):
+    for name in sorted(assign, key=lambda n: (n in _APPLIED_LAST, n)):
         s, e = CANDIDATES[name].apply(s, assign[name])
         edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
         edits.update(e)
@@ -96,9 +109,15 @@ class Candidate:
     group: str
     render: str             # "hits" (re-detection of stored sub-ray hits) or "trace"
     description: str
+    keys: tuple = ()        # the values' names (the recording physics'), when not the searched parameters'
+
+    @property
+    def value_keys(self) -> tuple:
+        """Names of the candidate's values (what :meth:`apply` takes and the report gives)."""
+        return self.keys or tuple(p.name for p in self.params)
 
     def baseline(self, survey: dict) -> dict:
-        """The parameter values the survey already simulates."""
+        """The values the survey already simulates."""
         from vlsforest.sim.scanner import PRESETS
 
         ov = survey.get("overrides") or {}
@@ -118,31 +137,53 @@ class Candidate:
             "tls_occlusion": {"top_gain": 0.0},
         }[self.name]
 
-    def bounds(self, survey: dict) -> dict:
-        """Bounds per parameter (absolute units) for this survey."""
-        base = self.baseline(survey)
-        out = {}
-        for p in self.params:
-            if self.name == "elliptical_footprint":
-                b = base[p.name]
-                out[p.name] = (p.lo * b, p.hi * b)
-            else:
-                out[p.name] = (p.lo, p.hi)
+    def current(self, survey: dict, base: dict) -> dict:
+        """The values simulated with the candidates ``base`` (id → values) applied to ``survey``:
+        its own entry there, else its baseline; for ``elliptical_footprint`` the beam ``base``
+        makes (a fitted divergence scale included), so that its search starts from that beam."""
+        if self.name in base:
+            return dict(base[self.name])
+        if self.name == "elliptical_footprint":
+            major, minor = _divergence(apply_all(survey, base)[0])
+            return {"major_mrad": major / _FWHM_TO_1E2, "minor_mrad": minor / _FWHM_TO_1E2}
+        return self.baseline(survey)
+
+    def coords(self, values: dict) -> dict:
+        """The searched parameters (:attr:`params`) of ``values``: the values themselves, but the
+        aspect ratio major / minor for ``elliptical_footprint``."""
+        if self.name == "elliptical_footprint":
+            return {"aspect": values["major_mrad"] / values["minor_mrad"]}
+        return {p.name: values[p.name] for p in self.params}
+
+    def values(self, current: dict, coords: dict) -> dict:
+        """The values at the searched parameters ``coords``, the rest as in ``current``; for
+        ``elliptical_footprint`` the beam of ``current``'s solid angle (major · minor) with
+        the aspect ratio ``coords["aspect"]``."""
+        if self.name == "elliptical_footprint":
+            area, k = current["major_mrad"] * current["minor_mrad"], float(coords["aspect"])
+            return {"major_mrad": float(np.sqrt(area * k)), "minor_mrad": float(np.sqrt(area / k))}
+        out = dict(current)
+        out.update({k: float(v) for k, v in coords.items()})
         return out
 
+    def bounds(self, survey: dict) -> dict:
+        """Bounds per searched parameter (absolute units)."""
+        return {p.name: (p.lo, p.hi) for p in self.params}
+
     def step(self, current: dict, survey: dict) -> dict:
-        """``current`` with the first parameter moved by the reference perturbation (for the
-        signature): multiplied by ``delta`` for log parameters (set to it from 0), else added;
-        clipped to the bounds, and taken the other way when a bound blocks it."""
+        """``current`` with the first searched parameter moved by the reference perturbation
+        (for the signature): multiplied by ``delta`` for log parameters (set to it from 0), else
+        added; clipped to the bounds, and taken the other way when a bound blocks it. Returns
+        values (as :meth:`apply` takes them)."""
         p = self.params[0]
         lo, hi = self.bounds(survey)[p.name]
-        c = current[p.name]
+        co = self.coords(current)
+        c = co[p.name]
         v = (c * p.delta if c > 0 else p.delta) if p.log else c + p.delta
-        out = dict(current)
-        out[p.name] = float(np.clip(v, lo, hi))
-        if out[p.name] == c:
-            out[p.name] = float(np.clip(c / p.delta if p.log else c - p.delta, lo, hi))
-        return out
+        co[p.name] = float(np.clip(v, lo, hi))
+        if co[p.name] == c:
+            co[p.name] = float(np.clip(c / p.delta if p.log else c - p.delta, lo, hi))
+        return self.values(current, co)
 
     def apply(self, survey: dict, values: dict) -> tuple[dict, dict]:
         """A copy of ``survey`` with the candidate set to ``values``; also the scene edits.
@@ -190,9 +231,9 @@ class Candidate:
 CANDIDATES = {c.name: c for c in (
     Candidate("beam_divergence", (Param("scale", 0.5, 4.0, 1.7, log=True),), "footprint", "trace",
               "beam divergence (footprint size) differs from the simulated one"),
-    Candidate("elliptical_footprint", (Param("major_mrad", 1.0, 6.0, 3.0, log=True),
-                                       Param("minor_mrad", 0.3, 3.0, 1.0, log=True)), "footprint", "trace",
-              "an elliptical beam (major × minor divergence at FWHM) instead of a circular one"),
+    Candidate("elliptical_footprint", (Param("aspect", 1.0, 6.0, 3.0, log=True),), "footprint", "trace",
+              "an elliptical beam (major × minor divergence at FWHM) instead of a circular one",
+              keys=("major_mrad", "minor_mrad")),
     Candidate("detection_threshold", (Param("min_energy", 0.0, 1.0e5, 5000.0, log=True),), "link budget", "hits",
               "weak echoes below a minimum energy are not detected"),
     Candidate("reflectance", (Param("scale", 0.2, 2.0, 0.5, log=True),), "link budget", "hits",
@@ -256,6 +297,24 @@ def occlusion_corrected(model, top_gain: float):
     return VoxelModel(model.size, model.ijk, model.owner, half, centre, pad)
 
 
+def merge(base: dict, name: str, values: dict) -> dict:
+    """A copy of ``base`` (id → values) with candidate ``name`` set to ``values``.
+
+    ``elliptical_footprint``'s values are the whole beam (its search starts from the beam of
+    ``base``, see :meth:`Candidate.current`), so it replaces a ``beam_divergence`` scale there.
+    """
+    out = {k: dict(v) for k, v in base.items()
+           if not (name == "elliptical_footprint" and k == "beam_divergence")}
+    out[name] = dict(values)
+    return out
+
+
+def beam_fwhm(survey: dict, assign: dict) -> tuple[float, float]:
+    """The beam (major, minor) divergence in mrad at FWHM of ``survey`` with ``assign`` applied."""
+    major, minor = _divergence(apply_all(survey, assign)[0])
+    return major / _FWHM_TO_1E2, minor / _FWHM_TO_1E2
+
+
 def equivalent_circular_divergence(survey: dict, assign: dict) -> float:
     """FWHM divergence (mrad) of the circular beam with the same solid angle as the beam of
     ``survey`` with the candidates ``assign`` (id → values) applied: √(major · minor).
@@ -277,8 +336,8 @@ def equivalent_circular_divergence(survey: dict, assign: dict) -> float:
     -------
     float
     """
-    major, minor = _divergence(apply_all(survey, assign)[0])
-    return float(np.sqrt(major * minor) / _FWHM_TO_1E2)
+    major, minor = beam_fwhm(survey, assign)
+    return float(np.sqrt(major * minor))
 
 
 #: observables that separate the members of a group (named in the report when a group ties)
