@@ -858,6 +858,9 @@ def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(mon
     assert removed > 0.8
     assert o["worse_fitted_than_truth"] == []
     assert isinstance(o["worse_told_truth"], list)
+    # told the truth, what is left per observable is the stand-in's reconstruction error
+    left = np.nanmean(study.real.to_numpy(float) - study.base - study._response(hidden), axis=0)
+    assert [o["residual_told_truth"][f] for f in FEATURES] == pytest.approx(left)
     # a deliberately wrong "truth" is seen: the fit is then better than the oracle's value
     setup.oracle = {"range_noise": {"sigma_m": 0.0}}
     o2 = core.diagnose(setup, log=lambda m: None)["oracle"]
@@ -1020,6 +1023,13 @@ def test_the_ellipse_is_searched_along_its_aspect_from_the_beam_simulated_so_far
                      {"scale": 0.5})
     assert lib.beam_fwhm(survey, both) == pytest.approx((0.8, 0.25))
     assert ell.bounds(survey) == {"aspect": (1.0, 6.0)} and ell.value_keys == ("major_mrad", "minor_mrad")
+    # a circle reached as a scale and as an ellipse of aspect 1: the same beam for the simulator
+    # (so the fit's aspect-1 grid point renders from the baseline's trace)
+    for scale in (3.1009267866, 2.7036141521175217, 0.731):
+        b = {"beam_divergence": {"scale": scale}}
+        circle = lib.merge(b, "elliptical_footprint", ell.values(ell.current(survey, b), {"aspect": 1.0}))
+        as_ellipse, as_scale = lib.apply_all(survey, circle)[0]["overrides"], lib.apply_all(survey, b)[0]["overrides"]
+        assert as_ellipse["beam_divergence_mrad"] == as_scale["beam_divergence_mrad"]   # bit for bit
 
 
 def test_an_unseparated_footprint_group_reports_the_solid_angle_it_fits(monkeypatch):
@@ -1052,6 +1062,30 @@ def test_a_hidden_ellipse_gets_its_size_then_its_aspect(monkeypatch, seed):
     assert "(the beam: " in rep["verdict"] and "not separated" not in rep["verdict"]
     ell = next(e for e in rep["effects"] if e["name"] == "elliptical_footprint")
     assert "aspect" in ell["ci95"] and ell["equivalent_circular_fwhm_mrad"] == pytest.approx(np.sqrt(0.8), rel=0.2)
+
+
+def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):
+    """The aspect's grid (its own 5 points) passes through the reference step, whose simulation
+    the signature already made: the stage-2 fit adds 4 ellipses to it (aspect 1 is the baseline)."""
+    from vlsforest.diagnose import core
+
+    study = _LinearStudy({"elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5}}, recon=0.25)
+    fits = []
+    orig = core._fit
+    monkeypatch.setattr(core, "_fit", lambda st_, base, cand, *a: fits.append((dict(base), cand.name)) or
+                        orig(st_, base, cand, *a))
+    rep = _run_logic(monkeypatch, study)
+    assert rep["accepted"] == ["beam_divergence", "elliptical_footprint"]
+    base = fits[1][0]
+    ell = lib.CANDIDATES["elliptical_footprint"]
+    start = ell.current(study.survey, base)
+    step = json.dumps(lib.merge(base, "elliptical_footprint", ell.step(start, study.survey)), sort_keys=True)
+    ellipses = {a for a in study.simulated if "elliptical_footprint" in a and "beam_divergence" not in a}
+    assert step in ellipses
+    grid = np.unique(np.r_[np.geomspace(1.0, 6.0, 5), 3.0])
+    on_grid = {json.dumps(lib.merge(base, "elliptical_footprint", ell.values(start, {"aspect": k})), sort_keys=True)
+               for k in grid}
+    assert on_grid <= ellipses and len(on_grid) == 6
 
 
 def test_a_hidden_circle_gets_no_aspect(monkeypatch):

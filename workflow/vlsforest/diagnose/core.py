@@ -593,7 +593,11 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     curves = {}
     for par in cand.params:
         lo, hi = bounds[par.name]
-        g = _grid(par, lo, hi, cur[par.name], n_grid if par is cand.params[0] else max(n_grid - 2, 3))
+        if par.n_grid:  # its own grid, through the reference step (simulated for the signature)
+            g = np.unique(np.r_[_grid(par, lo, hi, cur[par.name], par.n_grid),
+                                cand.step_coords(start, study.survey)[par.name]])
+        else:
+            g = _grid(par, lo, hi, cur[par.name], n_grid if par is cand.params[0] else max(n_grid - 2, 3))
         Ds = []
         for v in g:
             val = dict(allv)
@@ -784,7 +788,10 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                   # observables significantly worse when told the truth (the voxel model's own
                   # error compensated there), and worse with the fitted values than with the truth
                   "worse_told_truth": st.worse_metrics(D0, D_or, FEATURES),
-                  "worse_fitted_than_truth": st.worse_metrics(D_or, D_fit, FEATURES)}
+                  "worse_fitted_than_truth": st.worse_metrics(D_or, D_fit, FEATURES),
+                  # what is left when told the truth (the reconstruction's own error, per observable)
+                  "residual_told_truth": {f: (float(np.nanmean(D_or[:, j])) if np.isfinite(D_or[:, j]).any()
+                                              else None) for j, f in enumerate(FEATURES)}}
     rep = {
         "scenario": setup.scenario,
         "metric": setup.metric,

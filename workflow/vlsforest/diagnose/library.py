@@ -85,6 +85,9 @@ def apply_all(survey: dict, assign: dict) -> tuple[dict, dict]:
         s, e = CANDIDATES[name].apply(s, assign[name])
         edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
         edits.update(e)
+    div = (s.get("overrides") or {}).get("beam_divergence_mrad")
+    if isinstance(div, list):  # one beam reached two ways (a scale, an ellipse of aspect 1) shares its trace
+        s["overrides"]["beam_divergence_mrad"] = [float(f"{d:.12g}") for d in div]
     return s, edits
 
 
@@ -98,6 +101,7 @@ class Param:
     delta: float            # reference perturbation (added, or a factor when log=True; from 0: added)
     log: bool = False
     integer: bool = False
+    n_grid: int = 0         # grid points of its fit (0: the diagnosis' ``grid``); the reference step is one
 
 
 @dataclass(frozen=True)
@@ -170,11 +174,8 @@ class Candidate:
         """Bounds per searched parameter (absolute units)."""
         return {p.name: (p.lo, p.hi) for p in self.params}
 
-    def step(self, current: dict, survey: dict) -> dict:
-        """``current`` with the first searched parameter moved by the reference perturbation
-        (for the signature): multiplied by ``delta`` for log parameters (set to it from 0), else
-        added; clipped to the bounds, and taken the other way when a bound blocks it. Returns
-        values (as :meth:`apply` takes them)."""
+    def step_coords(self, current: dict, survey: dict) -> dict:
+        """The searched parameters of :meth:`step`."""
         p = self.params[0]
         lo, hi = self.bounds(survey)[p.name]
         co = self.coords(current)
@@ -183,7 +184,14 @@ class Candidate:
         co[p.name] = float(np.clip(v, lo, hi))
         if co[p.name] == c:
             co[p.name] = float(np.clip(c / p.delta if p.log else c - p.delta, lo, hi))
-        return self.values(current, co)
+        return co
+
+    def step(self, current: dict, survey: dict) -> dict:
+        """``current`` with the first searched parameter moved by the reference perturbation
+        (for the signature): multiplied by ``delta`` for log parameters (set to it from 0), else
+        added; clipped to the bounds, and taken the other way when a bound blocks it. Returns
+        values (as :meth:`apply` takes them)."""
+        return self.values(current, self.step_coords(current, survey))
 
     def apply(self, survey: dict, values: dict) -> tuple[dict, dict]:
         """A copy of ``survey`` with the candidate set to ``values``; also the scene edits.
@@ -231,7 +239,7 @@ class Candidate:
 CANDIDATES = {c.name: c for c in (
     Candidate("beam_divergence", (Param("scale", 0.5, 4.0, 1.7, log=True),), "footprint", "trace",
               "beam divergence (footprint size) differs from the simulated one"),
-    Candidate("elliptical_footprint", (Param("aspect", 1.0, 6.0, 3.0, log=True),), "footprint", "trace",
+    Candidate("elliptical_footprint", (Param("aspect", 1.0, 6.0, 3.0, log=True, n_grid=5),), "footprint", "trace",
               "an elliptical beam (major × minor divergence at FWHM) instead of a circular one",
               keys=("major_mrad", "minor_mrad")),
     Candidate("detection_threshold", (Param("min_energy", 0.0, 1.0e5, 5000.0, log=True),), "link budget", "hits",
