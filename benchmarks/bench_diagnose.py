@@ -203,7 +203,10 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
             "worse_told_truth": "+".join(o.get("worse_told_truth", [])),
             "worse_fitted_than_truth": "+".join(o.get("worse_fitted_than_truth", [])),
             "traced": rep["cost"]["traced_simulations"], "read_back": rep["cost"].get("traces_read_back", 0),
-            "seconds": round(dt, 1), "observables": len(FEATURES)}
+            # the diagnosis' own cost; the oracle's simulations (the truth, the fit) apart
+            "seconds": rep["cost"]["seconds"], "oracle_traced": (o.get("cost") or {}).get("traced_simulations"),
+            "oracle_seconds": (o.get("cost") or {}).get("seconds"), "wall_seconds": round(dt, 1),
+            "observables": len(FEATURES)}
 
 
 def summarise(df) -> None:

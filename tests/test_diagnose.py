@@ -858,6 +858,15 @@ def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(mon
     assert removed > 0.8
     assert o["worse_fitted_than_truth"] == []
     assert isinstance(o["worse_told_truth"], list)
+    # the oracle's simulations are not the diagnosis' cost: counted apart
+    traced = _TracingStudy(hidden | {"beam_divergence": {"scale": 1.8}})
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: traced)
+    setup.oracle = hidden | {"beam_divergence": {"scale": 1.8}}
+    o3 = core.diagnose(setup, log=lambda m: None)
+    assert o3["cost"]["traced_simulations"] + o3["oracle"]["cost"]["traced_simulations"] == traced.n_traced
+    assert o3["oracle"]["cost"]["traced_simulations"] >= 1  # the truth's divergence was never simulated
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
+    setup.oracle = hidden
     # told the truth, what is left per observable is the stand-in's reconstruction error
     left = np.nanmean(study.real.to_numpy(float) - study.base - study._response(hidden), axis=0)
     assert [o["residual_told_truth"][f] for f in FEATURES] == pytest.approx(left)
