@@ -1039,6 +1039,9 @@ def test_the_ellipse_is_searched_along_its_aspect_from_the_beam_simulated_so_far
         circle = lib.merge(b, "elliptical_footprint", ell.values(ell.current(survey, b), {"aspect": 1.0}))
         as_ellipse, as_scale = lib.apply_all(survey, circle)[0]["overrides"], lib.apply_all(survey, b)[0]["overrides"]
         assert as_ellipse["beam_divergence_mrad"] == as_scale["beam_divergence_mrad"]   # bit for bit
+    given = {"scanner": "riegl_minivux1uav", "overrides": {"beam_divergence_mrad": [0.1 + 0.2, 0.3]}}
+    assert lib.apply_all(given, {})[0]["overrides"]["beam_divergence_mrad"] == [0.3, 0.3]
+    assert given["overrides"]["beam_divergence_mrad"] == [0.1 + 0.2, 0.3]  # the input is not modified
 
 
 def test_an_unseparated_footprint_group_reports_the_solid_angle_it_fits(monkeypatch):

@@ -86,8 +86,8 @@ def apply_all(survey: dict, assign: dict) -> tuple[dict, dict]:
         edits["reflectance_scale"] *= e.pop("reflectance_scale", 1.0)
         edits.update(e)
     div = (s.get("overrides") or {}).get("beam_divergence_mrad")
-    if isinstance(div, list):  # one beam reached two ways (a scale, an ellipse of aspect 1) shares its trace
-        s["overrides"]["beam_divergence_mrad"] = [float(f"{d:.12g}") for d in div]
+    if isinstance(div, (list, tuple)):  # one beam reached two ways (a scale, an ellipse of aspect 1): one trace
+        s = dict(s, overrides=dict(s["overrides"], beam_divergence_mrad=[float(f"{d:.12g}") for d in div]))
     return s, edits
 
 
