@@ -148,8 +148,8 @@ class Candidate:
         if self.name in base:
             return dict(base[self.name])
         if self.name == "elliptical_footprint":
-            major, minor = _divergence(apply_all(survey, base)[0])
-            return {"major_mrad": major / _FWHM_TO_1E2, "minor_mrad": minor / _FWHM_TO_1E2}
+            major, minor = beam_fwhm(survey, base)
+            return {"major_mrad": major, "minor_mrad": minor}
         return self.baseline(survey)
 
     def coords(self, values: dict) -> dict:
