@@ -244,6 +244,41 @@ def test_ground_observables_see_range_and_strip_noise():
     assert out["clean"]["ground_dz_lines"] < 0.02 and out["range"]["ground_dz_lines"] < 0.06
 
 
+def test_single_return_ground_observables_leave_out_echoes_mixed_with_vegetation():
+    """A ground echo that shares its pulse with vegetation is pulled up by it: the all-echo ground
+    roughness follows that mixing, the single-return one only the ground itself (its range noise
+    and its strips' offsets)."""
+    from vlsforest.diagnose.features import tree_features
+
+    rng = np.random.default_rng(14)
+    n = 6000
+    xy = rng.uniform(-3, 3, (n, 2))
+    line = rng.integers(1, 3, n)
+    mixed = rng.random(n) < 0.4  # 40 % of the ground echoes come from pulses with 2 returns
+    trees = pd.DataFrame({"tree_id": [1], "x": [0.0], "y": [0.0], "z": [0.0], "crown_radius": [1.0]})
+    out = {}
+    for name, sigma, shift in (("clean", 0.005, 0.0), ("range", 0.05, 0.0), ("strip", 0.005, 0.08)):
+        z = 0.05 * xy[:, 0] + sigma * rng.normal(size=n) + np.where(line == 1, shift, -shift)
+        z = z + np.where(mixed, rng.uniform(0.0, 0.3, n), 0.0)  # pulled towards the vegetation above
+        a = {"xyz": np.c_[xy, z], "return_number": np.where(mixed, 2, 1),
+             "number_of_returns": np.where(mixed, 2, 1), "gps_time": np.arange(n) * 1e-4,
+             "point_source_id": line, "scan_angle": np.zeros(n), "classification": np.full(n, 2),
+             "intensity": np.full(n, 100.0)}
+        tree = {"xyz": np.array([[0, 0, 10.0]] * 30), "return_number": np.ones(30, int),
+                "number_of_returns": np.ones(30, int), "gps_time": 5 + np.arange(30) * 1e-3,
+                "point_source_id": np.ones(30, int), "scan_angle": np.zeros(30), "classification": np.full(30, 5),
+                "intensity": np.full(30, 1.0)}
+        arr = {k: np.concatenate([a[k], tree[k]]) for k in a}
+        labels = np.r_[np.zeros(n, int), np.full(30, 1)]
+        out[name] = tree_features(arr, labels, trees).loc[1]
+    # the mixing: uniform 0–0.3 m on 40 % of the echoes, SD ≈ 0.3 · √(0.4 / 12 + 0.4 · 0.6 / 4) ≈ 0.09 m
+    assert out["clean"]["ground_sd_local"] > 0.07
+    assert out["clean"]["ground_sd_single"] == pytest.approx(0.005, rel=0.25)
+    assert out["range"]["ground_sd_single"] == pytest.approx(0.05, rel=0.15)
+    assert out["strip"]["ground_dz_single"] == pytest.approx(0.16, rel=0.15)
+    assert out["clean"]["ground_dz_single"] < 0.02
+
+
 def test_disc_selection_under_the_crown_equals_brute_force():
     from vlsforest.diagnose.features import _within
     from vlsforest.extract import _ColumnIndex
@@ -701,6 +736,17 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ the logic
+#: the observables of the first :class:`_LinearStudy` (session 25), in their order
+_STANDIN_FEATURES = (
+    "height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "multi_return_pct",
+    "returns_per_pulse", "rn1_share", "rn2_share", "rn3plus_share", "first_p50", "first_p90", "first_max",
+    "interecho_median", "interecho_p10", "interecho_short_pct", "interecho_floor",
+    "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
+    "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
+    "int_p01_rel", "int_p05_rel", "int_floor",
+)
+
+
 class _LinearStudy:
     """A stand-in for the simulations: observables respond linearly to each candidate's
     parameters (a fixed signature per unit step), trees differ by noise, and the "real" trees
@@ -711,24 +757,35 @@ class _LinearStudy:
 
     def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5, equal_footprints=False):
         rng = np.random.default_rng(seed)
-        nf = len(FEATURES)
+        later = np.random.default_rng([seed, 1])
+        # the observables the stand-in was first written for take their draws from ``rng`` in
+        # their old order, any observable added since from ``later``: adding one does not re-roll
+        # the others' signatures, base values and errors
+        first = np.array([f in _STANDIN_FEATURES for f in FEATURES])
+
+        def normal(*rows):  # standard normal draws of shape rows + (observables,)
+            out = np.empty(rows + (len(FEATURES),))
+            out[..., first] = rng.normal(size=rows + (int(first.sum()),))
+            out[..., ~first] = later.normal(size=rows + (int((~first).sum()),))
+            return out
+
         self.n_traced = self.n_loaded = 0
         self.kept = []  # (stage's assignments, spill) per round, as core._attribute marks them
         self.simulated = set()
-        self.base = rng.normal(size=(n_trees, nf)) * 3
-        self.G = {name: rng.normal(size=nf) for name in lib.CANDIDATES}
+        self.base = normal(n_trees) * 3
+        self.G = {name: normal() for name in lib.CANDIDATES}
         # footprint: per unit of relative size, and per unit of log aspect ratio (smaller: on the
         # quick forest a circle of the ellipse's solid angle removes most of its error)
         self.scale = {"beam_divergence": 1.0, "elliptical_footprint": 0.45, "detection_threshold": 1 / 5000,
                       "reflectance": 1.0, "waveform_window": 1.0, "max_returns": 1.0, "range_noise": 20.0,
                       "trajectory_noise": 20.0, "incidence_reflectance": 3.0, "tls_occlusion": 1.0}
         # the aspect at equal solid angle: its own signature (the size-driven ones do not move)
-        self.G["elliptical_footprint"] = rng.normal(size=nf)
+        self.G["elliptical_footprint"] = normal()
         if equal_footprints:  # the aspect changes every observable as the size does
             self.G["elliptical_footprint"] = self.G["beam_divergence"].copy()
-        recon_err = recon * rng.normal(size=nf) + 0.7 * rng.normal(size=(n_trees, nf))
+        recon_err = recon * normal() + 0.7 * normal(n_trees)
         self.index = pd.MultiIndex.from_product([["Q"], range(1, n_trees + 1)], names=["plot", "tree_id"])
-        real = self.base + recon_err + self._response(hidden) + out_of_library * rng.normal(size=nf)
+        real = self.base + recon_err + self._response(hidden) + out_of_library * normal()
         self.real = pd.DataFrame(real, index=self.index, columns=list(FEATURES))
 
     def _response(self, assign):
@@ -992,6 +1049,46 @@ def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved(
               {"name": "beam_divergence", "group": "footprint", "score": 0.75}]
     out, note = _tie_break(ranked, same, cosm, D, w)
     assert not note["resolved"] and note["winner"] == "beam_divergence" and "not separated" in note["text"]
+
+
+def test_a_tie_across_groups_is_broken_on_both_groups_observables():
+    """The ellipse (footprint group) and range noise (noise group) both roughen the ground under
+    the crown; a residual that is range noise on the single-return ground goes to range noise,
+    even though the footprint group's own observables alone would favour the ellipse."""
+    from vlsforest.diagnose.core import _tie_break
+
+    nf = len(FEATURES)
+    rng = np.random.default_rng(8)
+    common = rng.normal(size=nf)
+    fp = [FEATURES.index(f) for f in lib.TIE_BREAKERS["footprint"]]
+    noise = [FEATURES.index(f) for f in lib.TIE_BREAKERS["noise"]]
+    assert not set(fp) & set(noise)
+    ell, rn = common.copy(), common.copy()
+    ell[fp], rn[fp] = [0.3, 0.2, 0.2], [0.0, 0.0, 0.0]
+    ell[noise], rn[noise] = [0.0, 0.0], [3.0, 0.3]
+    resid = common.copy()
+    resid[fp], resid[noise] = [0.3, 0.2, 0.2], [3.0, 0.3]
+    D = np.tile(resid, (12, 1)) + 0.01 * rng.normal(size=(12, nf))
+    w = np.ones(nf)
+    names = ("elliptical_footprint", "range_noise")
+    cosm = {(a, b): (1.0 if a == b else 0.95) for a in names for b in names}
+    ranked = [{"name": "elliptical_footprint", "group": "footprint", "score": 0.40},
+              {"name": "range_noise", "group": "noise", "score": 0.38}]
+    sigs = {"elliptical_footprint": ell, "range_noise": rn}
+    out, note = _tie_break(ranked, sigs, cosm, D, w)
+    assert note["groups"] == ["footprint", "noise"]
+    assert note["tie_breakers"] == list(lib.TIE_BREAKERS["footprint"] + lib.TIE_BREAKERS["noise"])
+    assert note["resolved"] and note["winner"] == "range_noise" and out[0]["name"] == "range_noise"
+    assert "footprint and noise groups" in note["text"]
+    # on the footprint group's observables alone the ellipse would have won
+    mask = np.zeros(nf)
+    mask[fp] = 1.0
+    ev = {n: st.project(resid, sigs[n], w * mask)[1] for n in names}
+    assert ev["elliptical_footprint"] > ev["range_noise"]
+    # the other way round: a residual that is the ellipse stays with the ellipse
+    D2 = np.tile(ell, (12, 1)) + 0.01 * rng.normal(size=(12, nf))
+    out, note = _tie_break(ranked, sigs, cosm, D2, w)
+    assert note["resolved"] and note["winner"] == "elliptical_footprint"
 
 
 def test_equivalent_circular_divergence_is_the_geometric_mean_of_the_fwhm_axes():

@@ -553,7 +553,10 @@ def _tie_break(ranked, sigs, cosm, D0, w):
               and lead["score"] - r["score"] < TIE_MARGIN and r["score"] > 0]
     if not rivals:
         return ranked, None
-    tb = lib.TIE_BREAKERS.get(lead["group"], ())
+    # the separating observables of every group in the tie: a look-alike from another group is
+    # told apart by its own group's observables as much as by the leader's
+    groups = list(dict.fromkeys([lead["group"]] + [r["group"] for r in rivals]))
+    tb = tuple(dict.fromkeys(f for g in groups for f in lib.TIE_BREAKERS.get(g, ())))
     idx = [FEATURES.index(f) for f in tb]
     mask = np.zeros(len(FEATURES))
     mask[idx] = 1.0
@@ -568,11 +571,13 @@ def _tie_break(ranked, sigs, cosm, D0, w):
         winner = scored[0][1]
     else:  # the separating observables do not separate: the simplest member speaks for the group
         winner = min((n for _, n in scored), key=lambda n: (len(lib.CANDIDATES[n].value_keys), n != lead["name"]))
-    note = {"group": lead["group"], "members": [n for _, n in scored], "tie_breakers": list(tb),
+    where = (f"{lead['group']} group" if len(groups) == 1 else
+             "tie of look-alikes from the " + " and ".join(groups) + " groups")
+    note = {"group": lead["group"], "groups": groups, "members": [n for _, n in scored], "tie_breakers": list(tb),
             "explained_on_tie_breakers": {n: round(float(e), 3) for e, n in scored}, "winner": winner,
             "resolved": bool(resolved),
-            "text": (f"{winner} wins the {lead['group']} group on {', '.join(tb)}" if resolved else
-                     f"the {lead['group']} group ({', '.join(n for _, n in scored)}) is not separated by "
+            "text": (f"{winner} wins the {where} on {', '.join(tb)}" if resolved else
+                     f"the {where} ({', '.join(n for _, n in scored)}) is not separated by "
                      f"{', '.join(tb)}; the simplest member, {winner}, is fitted for the group")}
     if winner != lead["name"]:
         ranked = [r for r in ranked if r["name"] == winner] + [r for r in ranked if r["name"] != winner]

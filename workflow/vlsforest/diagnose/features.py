@@ -30,6 +30,11 @@ Observables (columns of :func:`tree_features`):
   line (range noise thickens it);
 * ``ground_dz_lines`` — median absolute offset between the ground of two flight lines in the
   same 1 m cell (trajectory errors move whole strips);
+* ``ground_sd_single``, ``ground_dz_single`` — the same two from the ground returns of pulses
+  with a single return only. A ground echo that shares its pulse with vegetation is pulled by
+  it (the waveform's peaks merge within the dead zone), so the two above also follow the beam's
+  footprint and the low vegetation, which a voxel reconstruction gets wrong; these two keep
+  what moves the ground itself (range noise, strip shifts) without that mixing;
 * ``int_p01_rel``, ``int_p05_rel`` — the 1st and 5th percentile of the tree's echo intensities
   divided by the 10th: scale-free (real intensities are rarely calibrated, and a reflectance
   change scales them all), but a detection threshold cuts the weak end and raises them;
@@ -61,6 +66,7 @@ FEATURES = STUDY_METRICS + (
     "interecho_median", "interecho_p10", "interecho_short_pct", "interecho_floor",
     "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
     "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
+    "ground_sd_single", "ground_dz_single",
     "int_p01_rel", "int_p05_rel", "int_floor",
 )
 #: the stratum each observable describes (for the located mismatches, in words)
@@ -75,6 +81,8 @@ STRATUM = {
     "rpp_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "rpp_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
     "crown_extent_ratio": "crown (along x / along y)", "ground_share_pct": "ground under the crown",
     "ground_sd_local": "ground under the crown", "ground_dz_lines": "ground under the crown, between flight lines",
+    "ground_sd_single": "single-return ground under the crown",
+    "ground_dz_single": "single-return ground under the crown, between flight lines",
     "int_p01_rel": "weakest echoes (intensity / its 10th percentile)",
     "int_p05_rel": "weak echoes (intensity / its 10th percentile)",
     "int_floor": "weakest detected echoes (0.1 % intensity)",
@@ -271,6 +279,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     gsel = arrays["classification"] == 2
     gxyz = xyz[gsel]
     gline = np.asarray(arrays["point_source_id"])[gsel]
+    gsingle = np.asarray(arrays["number_of_returns"])[gsel] == 1
     allxy = xyz[:, :2]
     columns = _ColumnIndex(allxy) if columns is None else columns
     gcolumns = _ColumnIndex(gxyz[:, :2])
@@ -317,6 +326,8 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
             row["ground_share_pct"] = 100.0 * float(np.mean(arrays["classification"][col] == 2))
         gcol = _within(gxyz[:, :2], gcolumns, float(t.x), float(t.y), float(t.crown_radius) + GROUND_PAD_M)
         row["ground_sd_local"], row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])
+        gs = gcol[gsingle[gcol]]
+        row["ground_sd_single"], row["ground_dz_single"] = _ground_stats(gxyz[gs], gline[gs])
         rows.append(row)
     df = pd.DataFrame(rows).set_index("tree_id")
     return df.reindex(columns=list(FEATURES)).astype(float)

@@ -353,7 +353,7 @@ TIE_BREAKERS = {
     "footprint": ("crown_extent_ratio", "multi_pct_nadir", "multi_pct_offnadir"),
     "link budget": ("int_floor", "int_p01_rel", "int_p05_rel", "first_max"),
     "dead zone": ("interecho_floor", "interecho_p10", "interecho_short_pct", "rn3plus_share"),
-    "noise": ("ground_sd_local", "ground_dz_lines"),
+    "noise": ("ground_sd_single", "ground_dz_single"),
 }
 
 
