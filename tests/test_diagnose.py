@@ -100,6 +100,15 @@ def test_robust_fit_ignores_observables_that_cannot_match():
     assert st.robust_fit(x, Ds, w, 0, 10) == pytest.approx(3.0)
     ls = st.grid_minimum(x, [st.bias_loss(D, w) for D in Ds], 0, 10)
     assert ls > 4.0  # the least-squares minimum is pulled by the offsets
+    # the votes: the six observables that cross, at 3, weighted by w · (range along the grid)²
+    value, votes = st.crossing_votes(x, Ds, w, 0, 10)
+    assert value == st.robust_fit(x, Ds, w, 0, 10) and sorted(votes) == list(range(6))
+    assert [votes[j][0] for j in range(6)] == pytest.approx([3.0] * 6)
+    assert [votes[j][1] for j in range(6)] == pytest.approx((10 * slopes[:6]) ** 2)
+    # two crossings only: the least-squares minimum, no votes
+    value, votes = st.crossing_votes(x, [D[:, [0, 1, 6]] for D in Ds], np.ones(3), 0, 10)
+    assert votes == {} and value == pytest.approx(st.grid_minimum(
+        x, [st.bias_loss(D[:, [0, 1, 6]], np.ones(3)) for D in Ds], 0, 10))
 
 
 def test_amplitude_test_and_global_test_detect_a_shift_not_noise():
@@ -1171,6 +1180,13 @@ def test_a_hidden_ellipse_gets_its_size_then_its_aspect(monkeypatch, seed):
     assert "(the beam: " in rep["verdict"] and "not separated" not in rep["verdict"]
     ell = next(e for e in rep["effects"] if e["name"] == "elliptical_footprint")
     assert "aspect" in ell["ci95"] and ell["equivalent_circular_fwhm_mrad"] == pytest.approx(np.sqrt(0.8), rel=0.2)
+    # the votes that set the aspect: their weighted median is the fitted aspect
+    votes = ell["votes"]["aspect"]
+    assert len(votes) >= 3 and sum(v["weight_share"] for v in votes.values()) == pytest.approx(1.0)
+    x = sorted(votes.values(), key=lambda v: v["crossing"])
+    half = np.searchsorted(np.cumsum([v["weight_share"] for v in x]), 0.5)
+    aspect = rep["model"]["elliptical_footprint"]["major_mrad"] / rep["model"]["elliptical_footprint"]["minor_mrad"]
+    assert x[half]["crossing"] == pytest.approx(aspect)
 
 
 def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):

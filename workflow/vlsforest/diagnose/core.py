@@ -588,14 +588,16 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
          rng: np.random.Generator):
     """Grid fit of a candidate (coordinate search over its searched parameters, from the values
     ``base`` simulates); per-fold and all-tree values (as :meth:`Candidate.apply` takes them),
-    and the bootstrap CI of the first searched parameter."""
+    the bootstrap CI of the first searched parameter, and the all-tree fit's votes per searched
+    parameter (observable → its crossing and its share of the weight; empty where the
+    least-squares grid minimum was taken)."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
     k = int(folds.max()) + 1
     per_fold = [dict(cur) for _ in range(k)]
     allv = dict(cur)
-    curves = {}
+    curves, votes = {}, {}
     for par in cand.params:
         lo, hi = bounds[par.name]
         if par.n_grid:  # its own grid, through the reference step (simulated for the signature)
@@ -610,7 +612,10 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
             Ds.append(study.residual(_merge(base, cand.name, cand.values(start, val))))
         curves[par.name] = (g, Ds)
         lg = par.log and lo > 0
-        allv[par.name] = st.robust_fit(g, Ds, w, lo, hi, lg)
+        allv[par.name], v = st.crossing_votes(g, Ds, w, lo, hi, lg)
+        total = sum(q for _, q in v.values())
+        votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total}
+                           for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
         for f in range(k):
             per_fold[f][par.name] = st.robust_fit(g, Ds, w, lo, hi, lg, rows=folds != f)
         if par.integer:
@@ -627,7 +632,7 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         rows = rng.integers(0, n, n)
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
     ci = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
-    return cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci
+    return cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci, votes
 
 
 def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
@@ -717,7 +722,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # fit on the observables the candidate informs: weights scaled by the squared
         # signal-to-noise of its signature (reconstruction errors elsewhere do not pull the fit)
         wfit = w * st.information_weights(sigs[cand.name], current_D)
-        allv, per_fold, ci = _fit(study, base, cand, wfit, folds, setup.grid, rng)
+        allv, per_fold, ci, votes = _fit(study, base, cand, wfit, folds, setup.grid, rng)
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
         for f, val in enumerate(per_fold):
@@ -741,7 +746,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                         "heldout_error_before": eb, "heldout_error_after": ea, "p_value": p,
                         "worse_metrics": worse, "heldout_mean_residual": change,
                         "at_prior_bound": bool(at_bound), "accepted": bool(ok),
-                        "per_fold": per_fold, "stage": stage + 1})
+                        "per_fold": per_fold, "votes": votes, "stage": stage + 1})
         if cand.group == "footprint":  # what every member of the group would fit: the solid angle
             eq = lib.equivalent_circular_divergence(study.survey, _merge(base, cand.name, allv))
             effects[-1]["equivalent_circular_fwhm_mrad"] = eq

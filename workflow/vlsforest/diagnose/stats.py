@@ -323,7 +323,22 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     observable). Observables that never cross — those whose residual is dominated by an error
     the candidate cannot remove, such as the voxel model's — do not vote, so they cannot pull
     the fit the way they pull a least-squares fit. Falls back to the least-squares grid minimum
-    when fewer than three observables cross.
+    when fewer than three observables cross. :func:`crossing_votes` gives the votes.
+    """
+    return crossing_votes(x, Ds, w, lo, hi, log, rows)[0]
+
+
+def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log: bool = False,
+                   rows=None) -> tuple[float, dict]:
+    """:func:`robust_fit`'s estimate and its votes.
+
+    Returns
+    -------
+    value : float
+        The estimate (as :func:`robust_fit`).
+    votes : dict
+        Observable index → (crossing, weight) of every observable that voted; empty when fewer
+        than three crossed and the least-squares grid minimum was taken instead.
     """
     x = np.asarray(x, float)
     order = np.argsort(x)
@@ -332,7 +347,7 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
         M = np.array([np.nanmean(D if rows is None else D[rows], axis=0) for D in Ds])[order]
     loss = [bias_loss(D, w, rows) for D in Ds]
     x_ls = grid_minimum(np.asarray(x), np.asarray(loss)[order], lo, hi, log)
-    roots, wts = [], []
+    votes = {}
     for j in range(M.shape[1]):
         m = M[:, j]
         if w[j] <= 0 or not np.isfinite(m).all():
@@ -346,11 +361,11 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
                 cand.append(x[i])
             else:
                 cand.append(x[i] + (x[i + 1] - x[i]) * m[i] / (m[i] - m[i + 1]))
-        roots.append(min(cand, key=lambda v: abs(v - x_ls)))
-        wts.append(w[j] * float(m.max() - m.min()) ** 2)
-    if len(roots) < 3:
-        return x_ls
-    roots, wts = np.asarray(roots), np.asarray(wts)
-    k = np.argsort(roots)
+        votes[j] = (float(min(cand, key=lambda v: abs(v - x_ls))), float(w[j] * float(m.max() - m.min()) ** 2))
+    if len(votes) < 3:
+        return x_ls, {}
+    roots = np.array([r for r, _ in votes.values()])
+    wts = np.array([q for _, q in votes.values()])
+    k = np.argsort(roots, kind="stable")
     c = np.cumsum(wts[k])
-    return float(np.clip(roots[k][np.searchsorted(c, 0.5 * c[-1])], lo, hi))
+    return float(np.clip(roots[k][np.searchsorted(c, 0.5 * c[-1])], lo, hi)), votes
