@@ -547,6 +547,9 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
                            0.3, margin)
         ps = core._PlotSim(p, 0, 2, lambda m: None)
         assert ps._key({})[1].scanner.range_noise_m == 0
+        # its trajectory-noise realisation is its own, not the survey file's (the recording's)
+        assert ps.survey["seed"] == core._own_realisation(yaml.safe_load((res / "surveys" / "uls.yaml").read_text()),
+                                                          0)["seed"]
         pulses, _ = ps._trace({})
         sims[margin] = (ps.region, len(pulses["slot"]), ps.features({}))
     (r0, n0, f0), (r1, n1, f1) = sims[0.0], sims[15.0]
@@ -559,6 +562,29 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
         assert pts[:, 0].min() - 0.3 >= r0[0] and pts[:, 1].max() + 0.3 <= r0[3]
     reach = ps.trees.crown_radius + 2.0
     assert (ps.trees.x - reach).min() >= r0[0] - 1e-9 and (ps.trees.y + reach).max() <= r0[3] + 1e-9
+
+
+def test_the_diagnosis_draws_its_own_trajectory_noise_realisation():
+    """A recording made with the survey's seed and the diagnosis' simulations of the same noise
+    process share no realisation: their channels are uncorrelated over a long flight, each with
+    the process' σ; the diagnosis' seed is deterministic and differs between diagnosis seeds."""
+    from vlsforest.diagnose.core import _own_realisation
+    from vlsforest.sim.survey import TrajectoryNoise, _SmoothNoise
+
+    survey = {"scanner": "riegl_minivux1uav", "seed": 2}
+    own = _own_realisation(survey, 0)
+    assert own["seed"] == _own_realisation(survey, 0)["seed"] != 2 and survey["seed"] == 2
+    assert _own_realisation(survey, 1)["seed"] != own["seed"]
+    assert _own_realisation({"scanner": "x", "seed": 3}, 0)["seed"] != own["seed"]
+    noise = TrajectoryNoise(position_sigma_m=0.08, attitude_sigma_deg=0.0, correlation_s=2.0)
+    t = np.arange(0.0, 4000.0, 0.25)
+    rec, sim = _SmoothNoise(noise, survey["seed"])(t), _SmoothNoise(noise, own["seed"])(t)
+    for c in range(3):
+        assert np.std(rec[:, c]) == pytest.approx(0.08, rel=0.15)
+        assert np.std(sim[:, c]) == pytest.approx(0.08, rel=0.15)
+        assert abs(np.corrcoef(rec[:, c], sim[:, c])[0, 1]) < 0.15
+    # the survey's own seed gives the recording's realisation exactly (what the diagnosis avoids)
+    assert np.array_equal(_SmoothNoise(noise, 2)(t), rec)
 
 
 def test_library_reads_baselines_and_applies_values():

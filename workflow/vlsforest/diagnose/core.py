@@ -261,6 +261,21 @@ def _resampled(survey: dict, quality: int | None) -> dict:
     return dict(survey, overrides=dict(survey.get("overrides") or {}, beam_sample_quality=int(quality)))
 
 
+def _own_realisation(survey: dict, seed: int) -> dict:
+    """``survey`` with a seed of the diagnosis' own (from its ``seed`` and the survey's).
+
+    A survey's seed fixes its trajectory-noise realisation (:mod:`vlsforest.sim.survey`: six
+    smooth channels drawn from it, functions of GPS time). A recording made with the same survey
+    and seed — the real flight's survey re-planned, or a "real" recording of the virtual forest
+    made with the study's seed — would share that realisation with the diagnosis' simulations,
+    which would then match its strip offsets sample by sample and fit only an amplitude. A real
+    flight's errors are one unknown draw of the process; the diagnosis models the process with a
+    draw of its own.
+    """
+    own = np.random.SeedSequence([int(seed), int(survey.get("seed", 0))], spawn_key=(0xD1A9,))
+    return dict(survey, seed=int(own.generate_state(1, np.uint32)[0] >> 1))
+
+
 class _PlotSim:
     """One plot: its scene, survey, trees and real observables; simulations with caching."""
 
@@ -290,7 +305,7 @@ class _PlotSim:
         self._label = tree_labeller(pts, p.radius, workers)  # every simulation is labelled against these trees
         self.trees = tree_table(pts, stems)
         self.region = _observed_region(pts, self.trees, p.radius, p.margin)
-        self.survey = _resampled(load_survey_dict(p.survey), beam_sample_quality)
+        self.survey = _own_realisation(_resampled(load_survey_dict(p.survey), beam_sample_quality), seed)
         self.survey_dir = Path(p.survey).resolve().parent
         self.has_scaled = False
 
