@@ -1215,6 +1215,36 @@ def test_a_hidden_ellipse_gets_its_size_then_its_aspect(monkeypatch, seed):
     assert x[half]["crossing"] == pytest.approx(aspect)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 3])
+def test_a_fit_that_rests_on_one_observable_says_so_and_gives_the_value_without_it(monkeypatch, seed):
+    """Range noise moves one observable far more than the others, and that observable carries a
+    reconstruction error of its own: the fit follows it (the voxel model's error pulls the value),
+    and the report names the observable, its share of the weight and the value the other
+    observables give, which is nearer the hidden one (they carry the stand-in's reconstruction
+    error too, so it is no exact value)."""
+    hidden = {"range_noise": {"sigma_m": 0.06}}
+    study = _LinearStudy(hidden, seed=seed)
+    j = FEATURES.index("ground_sd_single")
+    resp = 0.06 * study.scale["range_noise"]  # the hidden σ's response per unit of signature
+    study.real.iloc[:, j] += resp * (25.0 - study.G["range_noise"][j])  # the real trees get it too
+    study.G["range_noise"][j] = 25.0
+    study.real.iloc[:, j] += 0.35 * resp * 25.0  # the reconstruction's own error there: 35 % of it
+    rep = _run_logic(monkeypatch, study, seed=seed)
+    eff = next(e for e in rep["effects"] if e["name"] == "range_noise")
+    assert eff["accepted"]
+    r = eff["rests_on"]["sigma_m"]
+    assert r["observable"] == "ground_sd_single" and r["weight_share"] > 0.5
+    assert eff["votes"]["sigma_m"]["ground_sd_single"]["weight_share"] == pytest.approx(r["weight_share"])
+    fitted = eff["parameters"]["sigma_m"]
+    assert fitted > 0.06 * 1.3                                  # pulled by that observable's error …
+    assert abs(r["without_it"] - 0.06) < abs(fitted - 0.06)    # … the others are nearer the truth
+    assert f"sigma_m: ground_sd_single carries {100 * r['weight_share']:.0f} % of the fit's weight" in rep["verdict"]
+    # an ordinary fit rests on no single observable
+    rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=seed), seed=seed)
+    assert next(e for e in rep["effects"] if e["name"] == "range_noise")["rests_on"] == {}
+    assert "carries" not in rep["verdict"]
+
+
 def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):
     """The aspect's grid (its own 5 points) passes through the reference step, whose simulation
     the signature already made: the stage-2 fit adds 4 ellipses to it (aspect 1 is the baseline)."""

@@ -58,6 +58,7 @@ ALPHA = 0.05
 PENALTY = 0.05          # explained-fraction penalty per parameter
 TIE_MARGIN = 0.10       # scores closer than this tie within a group
 TIE_RESOLVE = 0.05      # a tie is broken only if the separating observables differ by this much
+DOMINANT_VOTE = 0.5     # a fit whose one observable carries more of the weight "rests on" it (reported)
 MIN_EV = 0.05           # a candidate must explain at least this share of the mean residual
 #                         (the reconstruction error of the voxel model is always there beside it)
 #: default of a plot's ``margin`` (m): the diagnosis traces the pulses that enter the trees'
@@ -603,16 +604,18 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
          rng: np.random.Generator):
     """Grid fit of a candidate (coordinate search over its searched parameters, from the values
     ``base`` simulates); per-fold and all-tree values (as :meth:`Candidate.apply` takes them),
-    the bootstrap CI of the first searched parameter, and the all-tree fit's votes per searched
-    parameter (observable → its crossing and its share of the weight; empty where the
-    least-squares grid minimum was taken)."""
+    the bootstrap CI of the first searched parameter, and ``{"votes", "rests_on"}``: the all-tree
+    fit's votes per searched parameter (observable → its crossing and its share of the weight;
+    empty where the least-squares grid minimum was taken) and, for a parameter whose fit rests on
+    one observable (more than :data:`DOMINANT_VOTE` of the weight), that observable, its share
+    and the value fitted without it."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
     k = int(folds.max()) + 1
     per_fold = [dict(cur) for _ in range(k)]
     allv = dict(cur)
-    curves, votes = {}, {}
+    curves, votes, rests_on = {}, {}, {}
     for par in cand.params:
         lo, hi = bounds[par.name]
         if par.n_grid:  # its own grid, through the reference step (simulated for the signature)
@@ -631,6 +634,12 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         total = sum(q for _, q in v.values())
         votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total}
                            for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
+        top = max(v, key=lambda j: v[j][1]) if v else None
+        if top is not None and v[top][1] > DOMINANT_VOTE * total:  # the fit rests on one observable
+            w_out = w.copy()
+            w_out[top] = 0.0
+            rests_on[par.name] = {"observable": FEATURES[top], "weight_share": v[top][1] / total,
+                                  "without_it": st.robust_fit(g, Ds, w_out, lo, hi, lg)}
         for f in range(k):
             per_fold[f][par.name] = st.robust_fit(g, Ds, w, lo, hi, lg, rows=folds != f)
         if par.integer:
@@ -647,7 +656,8 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         rows = rng.integers(0, n, n)
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
     ci = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
-    return cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci, votes
+    return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
+            {"votes": votes, "rests_on": rests_on})
 
 
 def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
@@ -737,7 +747,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # fit on the observables the candidate informs: weights scaled by the squared
         # signal-to-noise of its signature (reconstruction errors elsewhere do not pull the fit)
         wfit = w * st.information_weights(sigs[cand.name], current_D)
-        allv, per_fold, ci, votes = _fit(study, base, cand, wfit, folds, setup.grid, rng)
+        allv, per_fold, ci, fit_info = _fit(study, base, cand, wfit, folds, setup.grid, rng)
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
         for f, val in enumerate(per_fold):
@@ -761,7 +771,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                         "heldout_error_before": eb, "heldout_error_after": ea, "p_value": p,
                         "worse_metrics": worse, "heldout_mean_residual": change,
                         "at_prior_bound": bool(at_bound), "accepted": bool(ok),
-                        "per_fold": per_fold, "votes": votes, "stage": stage + 1})
+                        "per_fold": per_fold, **fit_info, "stage": stage + 1})
         if cand.group == "footprint":  # what every member of the group would fit: the solid angle
             eq = lib.equivalent_circular_divergence(study.survey, _merge(base, cand.name, allv))
             effects[-1]["equivalent_circular_fwhm_mrad"] = eq
@@ -793,6 +803,11 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
     if "elliptical_footprint" in accepted:  # its aspect identified: the group stands for this beam
         group_note.pop("beam_divergence", None)
         group_note["elliptical_footprint"] = f" (the beam: {beam[0]:.3g} × {beam[1]:.3g} mrad at FWHM)"
+    for e in effects:  # a fit that rests on one observable says so, with the value without it
+        if e.get("accepted") and e.get("rests_on"):
+            group_note[e["name"]] = group_note.get(e["name"], "") + "".join(
+                f" ({par}: {r['observable']} carries {100 * r['weight_share']:.0f} % of the fit's weight; "
+                f"{r['without_it']:.3g} without it)" for par, r in e["rests_on"].items())
     if not significant:
         verdict = "no significant mismatch"
     elif accepted:
