@@ -60,10 +60,14 @@ def main(argv=None) -> int:
     wfit = w * st.information_weights(sig, D)
     rng = np.random.default_rng(setup.seed)
     folds = np.arange(len(D)) % setup.folds
-    allv, _, ci, votes = core._fit(study, base, cand, wfit, folds, setup.grid, rng)
+    allv, _, ci, info = core._fit(study, base, cand, wfit, folds, setup.grid, rng)
+    votes = info["votes"]
     sd = np.nanstd(D, axis=0, ddof=1)
     told = np.nanmean(study.residual(truth), axis=0) / sd
     print(f"{cand.name} from {base}: {allv} (CI of {cand.params[0].name}: {ci})")
+    for par, r in info["rests_on"].items():
+        print(f"{par} rests on {r['observable']} ({100 * r['weight_share']:.1f} % of the weight); "
+              f"{r['without_it']:.4g} without it")
     for par, v in votes.items():
         print(f"votes on {par}:")
         for f, x in v.items():
