@@ -632,9 +632,9 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         lg = par.log and lo > 0
         allv[par.name], v = st.crossing_votes(g, Ds, w, lo, hi, lg)
         total = sum(q for _, q in v.values())
-        votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total}
+        votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total if total > 0 else 0.0}
                            for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
-        top = max(v, key=lambda j: v[j][1]) if v else None
+        top = max(v, key=lambda j: v[j][1]) if total > 0 else None
         if top is not None and v[top][1] > DOMINANT_VOTE * total:  # the fit rests on one observable
             w_out = w.copy()
             w_out[top] = 0.0
