@@ -91,6 +91,23 @@ def _group_fit_error(case: str, fitted: dict):
     return abs(equivalent_circular_divergence(survey, got) - h) / h
 
 
+def add_case_arguments(ap) -> None:
+    """The arguments that name a case this benchmark has run (for the probes that re-read it)."""
+    ap.add_argument("--workdir", type=Path, required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--case", default="elliptical_footprint")
+    ap.add_argument("--tag", default="_q5", help="the case folder's suffix (--real-quality 5: _q5)")
+
+
+def case_setup(a):
+    """The diagnosis set-up of the case named by :func:`add_case_arguments`' parsed ``a``: its
+    ``sim.yaml`` and its "real" recording under ``--workdir``."""
+    from vlsforest.diagnose import load_setup
+
+    wd = a.workdir / f"seed{a.seed}"
+    return load_setup(wd / "sim.yaml", real_dir=wd / f"{a.case}{a.tag}" / "forest" / "plots")
+
+
 def _quick_view(seed: int, workdir: Path) -> Path:
     """Run the quick workflow for a forest seed (once); return its working directory."""
     from wfrun import QUICK, snakemake_cli

@@ -30,23 +30,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "workflow"))
 
 
 def main(argv=None) -> int:
-    from vlsforest.diagnose import core, load_setup
+    from bench_diagnose import add_case_arguments, case_setup
+    from vlsforest.diagnose import core
     from vlsforest.diagnose import library as lib
     from vlsforest.diagnose import stats as st
     from vlsforest.diagnose.features import FEATURES
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workdir", type=Path, required=True)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--case", default="elliptical_footprint")
-    ap.add_argument("--tag", default="_q5", help="the case folder's suffix (bench_diagnose's --real-quality 5: _q5)")
+    add_case_arguments(ap)
     ap.add_argument("--candidate", required=True)
     ap.add_argument("--base", default="{}", help="JSON: the assignment the stage starts from")
     ap.add_argument("--truth", required=True, help="JSON: the hidden assignment (the oracle)")
     ap.add_argument("--sim-quality", type=int, default=5)
     a = ap.parse_args(argv)
-    wd = a.workdir / f"seed{a.seed}"
-    setup = load_setup(wd / "sim.yaml", real_dir=wd / f"{a.case}{a.tag}" / "forest" / "plots")
+    setup = case_setup(a)
     setup.beam_sample_quality = a.sim_quality
     study = core._Study(setup, lambda m: print(m, file=sys.stderr))
     base, truth = json.loads(a.base), json.loads(a.truth)
@@ -54,10 +51,8 @@ def main(argv=None) -> int:
     w = st.weights(study.residual({}))  # as the diagnosis: from the residual as given
     study.pin(base)
     D = study.residual(base)
-    step = cand.step(cand.current(study.survey, base), study.survey)
-    sig = np.nanmean(study.sim(core._merge(base, cand.name, step)).reindex(study.real.index).to_numpy(float)
-                     - study.sim(base).reindex(study.real.index).to_numpy(float), axis=0)
-    wfit = w * st.information_weights(sig, D)
+    _, sigs, _ = core._attribute(study, base, [cand], D, w)  # its signature, as the stage makes it
+    wfit = w * st.information_weights(sigs[cand.name], D)
     rng = np.random.default_rng(setup.seed)
     folds = np.arange(len(D)) % setup.folds
     allv, _, ci, info = core._fit(study, base, cand, wfit, folds, setup.grid, rng)

@@ -30,18 +30,15 @@ GROUND = ("ground_sd_local", "ground_dz_lines", "ground_share_pct")
 
 
 def main(argv=None) -> int:
-    from vlsforest.diagnose import core, load_setup
+    from bench_diagnose import add_case_arguments, case_setup
+    from vlsforest.diagnose import core
     from vlsforest.diagnose.features import FEATURES
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workdir", type=Path, required=True)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--case", default="elliptical_footprint")
-    ap.add_argument("--tag", default="_q5", help="the case folder's suffix (bench_diagnose's --real-quality 5: _q5)")
+    add_case_arguments(ap)
     ap.add_argument("--assign", required=True, help="JSON: label → candidate assignment")
     a = ap.parse_args(argv)
     assigns = json.loads(a.assign)
-    wd = a.workdir / f"seed{a.seed}"
     orig = core.tree_features
     single = {"on": False}
 
@@ -56,8 +53,7 @@ def main(argv=None) -> int:
     core.tree_features = features
     for on in (False, True):
         single["on"] = on
-        study = core._Study(load_setup(wd / "sim.yaml", real_dir=wd / f"{a.case}{a.tag}" / "forest" / "plots"),
-                            lambda m: print(m, file=sys.stderr))
+        study = core._Study(case_setup(a), lambda m: print(m, file=sys.stderr))
         sd = np.nanstd(study.residual({}), axis=0, ddof=1)
         print("single-return ground echoes only" if on else "all ground echoes")
         for label, assign in assigns.items():
