@@ -199,6 +199,17 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
         got = model.get(name)
         if got:  # every value the hidden effect sets (the ellipse: both axes)
             fit_err[name] = max(abs(got[k] - v) / abs(v) for k, v in vals.items())
+    # the accepted hidden effect's CI on its first searched parameter, where that is one of the
+    # hidden values (the ellipse's searched aspect is none): does it hold the hidden value?
+    cis = {}
+    for e in rep["effects"]:
+        if e.get("accepted") and e["name"] in hidden:
+            for k, (lo, hi) in (e.get("ci95") or {}).items():
+                if k in hidden[e["name"]]:
+                    cis[f"{e['name']}.{k}"] = {"ci95": [lo, hi], "ci95_trees": (e.get("ci95_trees") or {}).get(k),
+                                               "realisation_relative_sd": (e.get("realisation_scatter") or {}).get(
+                                                   "relative_sd"),
+                                               "holds_hidden": bool(lo <= hidden[e["name"]][k] <= hi)}
     o = rep.get("oracle") or {}
     recov = (o["error_given"] - o["error_told_truth"]) if o else None
     removed = None
@@ -213,6 +224,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
             "expected_group": CASES[case][2], "accepted": "+".join(rep["accepted"]),
             "fitted": json.dumps(model),
             "fit_rel_error": max(fit_err.values()) if fit_err else None,
+            "ci": json.dumps(cis) if cis else None,
             "hidden_found": "+".join(sorted(n for n in hidden if n in rep["accepted"] or
                                              any(CANDIDATES[n].group == CANDIDATES[a].group for a in rep["accepted"]))),
             "error_given": o.get("error_given"), "error_told_truth": o.get("error_told_truth"),
@@ -260,6 +272,10 @@ def summarise(df) -> None:
                  f"equal-solid-angle divergence)" if group_fit.any() else ""))
         rr = eff.recoverable_removed.dropna()
         print(f"≥ 50 % of the recoverable held-out error removed: {(rr >= 0.5).sum()} of {len(eff)} runs")
+        if "ci" in eff:  # rows since session 27
+            held = [c["holds_hidden"] for x in eff.ci.dropna() for c in json.loads(x).values()]
+            if held:
+                print(f"hidden value inside the fitted CI: {sum(held)} of {len(held)} fits that report one")
     nl = df[df.case == "null"]
     if len(nl):
         print(f"null runs with an accepted effect: {(nl.accepted.fillna('') != '').sum()} of {len(nl)}")

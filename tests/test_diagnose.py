@@ -640,6 +640,11 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                                        "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
         with pytest.raises(ConfigError, match="beam_sample_quality must be an integer ≥ 1"):
             load_setup(bad, real_dir=tmp_path)
+    for n in (-1, 1.5, True):
+        bad.write_text(yaml.safe_dump({"scenario": "uls", "realisations": n,
+                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
+        with pytest.raises(ConfigError, match="realisations must be an integer ≥ 0"):
+            load_setup(bad, real_dir=tmp_path)
     for m in (-1, "wide", None):
         bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c",
                                                                           "radius": 0.3, "margin": m}}}))
@@ -790,7 +795,11 @@ class _LinearStudy:
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
     has_scaled = True
 
-    def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5, equal_footprints=False):
+    def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5, equal_footprints=False,
+                 draws=None):
+        # ``draws``: amplitude of each draw of the trajectory-noise process (key: the values'
+        # "realisation", 0 = the simulation's own; "real": the recording's); 1 where not given
+        self.draws = draws or {}
         rng = np.random.default_rng(seed)
         later = np.random.default_rng([seed, 1])
         # the observables the stand-in was first written for take their draws from ``rng`` in
@@ -820,10 +829,10 @@ class _LinearStudy:
             self.G["elliptical_footprint"] = self.G["beam_divergence"].copy()
         recon_err = recon * normal() + 0.7 * normal(n_trees)
         self.index = pd.MultiIndex.from_product([["Q"], range(1, n_trees + 1)], names=["plot", "tree_id"])
-        real = self.base + recon_err + self._response(hidden) + out_of_library * normal()
+        real = self.base + recon_err + self._response(hidden, draw="real") + out_of_library * normal()
         self.real = pd.DataFrame(real, index=self.index, columns=list(FEATURES))
 
-    def _response(self, assign):
+    def _response(self, assign, draw=None):
         out = 0.0
         for name, vals in assign.items():
             c = lib.CANDIDATES[name]
@@ -831,6 +840,8 @@ class _LinearStudy:
                 continue
             b = c.baseline(self.survey)
             step = sum((vals[p.name] - b[p.name]) for p in c.params)
+            if c.realisations:  # this draw's amplitude of the process
+                step *= self.draws.get(vals.get("realisation", 0) if draw is None else draw, 1.0)
             out = out + step * self.scale[name] * self.G[name]
         # the footprint from the beam the candidates make (applied as the diagnosis applies them):
         # its size (equal-solid-angle divergence, relative to the survey's) along the circle's
@@ -1243,6 +1254,57 @@ def test_a_fit_that_rests_on_one_observable_says_so_and_gives_the_value_without_
     rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=seed), seed=seed)
     assert next(e for e in rep["effects"] if e["name"] == "range_noise")["rests_on"] == {}
     assert "carries" not in rep["verdict"]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(monkeypatch, seed):
+    """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the
+    simulation another (1.0), so the fit lands at σ · 1.25, and the bootstrap over trees — which
+    sees neither draw's scatter — misses σ. Three further draws (amplitudes 1.3, 0.8, 1.1) each
+    fit at the fitted value × their amplitude, exactly in this linear stand-in; their RMS relative
+    deviation widens the CI, which then holds σ. Without further draws the CI is the trees'."""
+    from vlsforest.diagnose import core
+
+    hidden = {"trajectory_noise": {"position_sigma_m": 0.08}}
+    draws = {"real": 1.25, 0: 1.0, 1: 1.3, 2: 0.8, 3: 1.1}
+    rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=seed, draws=draws), seed=seed)
+    eff = rep["effects"][0]
+    assert eff["name"] == "trajectory_noise" and eff["accepted"], rep["verdict"]
+    x = eff["parameters"]["position_sigma_m"]
+    assert x == pytest.approx(0.08 * 1.25, rel=0.15)
+    sc = eff["realisation_scatter"]
+    assert sc["n"] == 3 and sc["fitted"] == pytest.approx([x * 1.3, x * 0.8, x * 1.1], rel=1e-9)
+    assert sc["relative_sd"] == pytest.approx(np.sqrt((0.3 ** 2 + 0.2 ** 2 + 0.1 ** 2) / 3), rel=1e-9)
+    trees, ci = eff["ci95_trees"]["position_sigma_m"], eff["ci95"]["position_sigma_m"]
+    assert not trees[0] <= 0.08 <= trees[1]  # the trees' CI misses the hidden value …
+    assert ci[0] <= 0.08 <= ci[1]            # … the draws' scatter puts it inside
+    half = 1.96 * sc["relative_sd"] * x
+    assert ci == pytest.approx([x - np.hypot(x - trees[0], half), x + np.hypot(trees[1] - x, half)])
+    # without further draws: the trees' CI, and no draw simulated
+    study = _LinearStudy(hidden, seed=seed, draws=draws)
+    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
+    rep0 = core.diagnose(core.Setup(scenario="uls", plots=[], seed=seed, realisations=0), log=lambda m: None)
+    eff0 = rep0["effects"][0]
+    assert eff0["ci95"] == {"position_sigma_m": trees} and "realisation_scatter" not in eff0
+    assert not any('"realisation"' in k for k in study.simulated)
+    # a candidate with no random draws gets none
+    rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.06}}, seed=seed), seed=seed)
+    assert "realisation_scatter" not in rep["effects"][0] and "ci95_trees" not in rep["effects"][0]
+
+
+def test_a_further_draw_of_trajectory_noise_changes_only_the_surveys_seed():
+    c = lib.CANDIDATES
+    survey = {"scanner": "riegl_minivux1uav", "seed": 7, "platform": {}}
+    s0, _ = c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.05})
+    s1, _ = c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.05, "realisation": 1})
+    s2, _ = c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.05, "realisation": 2})
+    assert s0["seed"] == 7 and len({s0["seed"], s1["seed"], s2["seed"]}) == 3
+    assert s1 == dict(s0, seed=s1["seed"])
+    assert c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.05, "realisation": 1})[0] == s1
+    assert c["trajectory_noise"].apply(dict(survey, seed=8), {"position_sigma_m": 0.05, "realisation": 1})[0][
+        "seed"] != s1["seed"]
+    with pytest.raises(ConfigError, match="range_noise: draws no random realisation"):
+        c["range_noise"].apply(survey, {"sigma_m": 0.05, "realisation": 1})
 
 
 def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):

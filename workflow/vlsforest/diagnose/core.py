@@ -25,7 +25,11 @@ Steps (see the README section "Diagnosis"):
    candidate cannot remove do not vote); k-fold across trees: each fold's value is fitted on
    the other trees and simulated for the held-out ones. The effect is accepted when the held-out per-tree error drops
    significantly (one-sided paired Wilcoxon); observables that get significantly worse (Holm)
-   are named in the report and the verdict.
+   are named in the report and the verdict. For an accepted candidate whose simulation is one
+   draw of a random process with few independent samples over a plot (trajectory noise:
+   :attr:`.library.Candidate.realisations`), further draws are simulated at the fitted value and
+   each is fitted as if it were the recording; their scatter — which the recording's own draw
+   has too — widens the CI (``ci95``; ``ci95_trees`` is the bootstrap over trees alone).
    Then a second effect is sought the same way on top of the first.
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the
@@ -100,6 +104,9 @@ class Setup:
     #: biased when the simulation samples the beam more coarsely than the real beam is (fewer
     #: sub-rays split fewer echoes, so a wider beam is fitted); see the README "Diagnosis"
     beam_sample_quality: int | None = None
+    #: further draws of a random candidate's process simulated at its fitted value, whose
+    #: scatter widens its CI (one trace each; 0: the CI is the bootstrap over trees alone)
+    realisations: int = 3
     #: benchmarks only: the hidden truth as candidate values; the report then also gives the
     #: error of a simulation told these values (the "recoverable" error's reference)
     oracle: dict | None = None
@@ -119,6 +126,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
                                       # residuals' shrunk across-tree correlation (experimental)
         beam_sample_quality: 4        # sub-ray rings of the diagnosis' simulations (default: the
                                       # survey's); finer than the study's for footprint fits
+        realisations: 3               # further draws of an accepted trajectory-noise fit's process
+                                      # (one trace each) whose scatter widens its CI; 0: none
         plots:
           Q1:
             real: …/Q1/uls.laz        # default: <--real DIR>/<plot>/<recording>.laz
@@ -146,7 +155,7 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
     known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects",
-             "metric", "beam_sample_quality"}
+             "metric", "beam_sample_quality", "realisations"}
     for k in d:
         if k not in known:
             raise ConfigError(f"{path}: unknown key {k!r} (known: {', '.join(sorted(known))})")
@@ -188,9 +197,12 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     q = d.get("beam_sample_quality")
     if q is not None and (isinstance(q, bool) or not isinstance(q, int) or q < 1):
         raise ConfigError(f"{path}: beam_sample_quality must be an integer ≥ 1, got {q!r}")
+    nr = d.get("realisations", 3)
+    if isinstance(nr, bool) or not isinstance(nr, int) or nr < 0:
+        raise ConfigError(f"{path}: realisations must be an integer ≥ 0, got {nr!r}")
     return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), int(d.get("workers", 2)),
                  int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")),
-                 metric=metric, beam_sample_quality=q)
+                 metric=metric, beam_sample_quality=q, realisations=nr)
 
 
 # ------------------------------------------------------------------------------------ simulation
@@ -657,7 +669,32 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
     ci = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
     return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
-            {"votes": votes, "rests_on": rests_on})
+            {"votes": votes, "rests_on": rests_on, "curve": curves[par.name]})
+
+
+def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: dict, curve: tuple,
+                         w: np.ndarray, n: int) -> dict:
+    """The scatter of a random candidate's fit between draws of its process.
+
+    Draws 1 … ``n`` of the process are simulated at the fitted values ``allv``; each is taken as
+    if it were the recording and fitted on the all-tree grid ``curve`` (draw 0's simulations)
+    the way the diagnosis fits (:func:`.stats.robust_fit`, weights ``w``). Draw r gives the
+    value at which draw 0 looks like draw r at ``allv``: ``allv · a_r / a_0`` for amplitudes
+    ``a`` of the draws, so its relative deviation has the spread of the real fit's error, which
+    is ``a_real / a_0`` (a recording is one draw too). Returns the fitted values and their RMS
+    relative deviation.
+    """
+    par = cand.params[0]
+    g, Ds = curve
+    lo, hi = cand.bounds(study.survey)[par.name]
+    x = cand.coords(allv)[par.name]
+    vals = []
+    for r in range(1, n + 1):
+        Dr = study.residual(_merge(base, cand.name, dict(allv, realisation=r)))
+        # draw r's simulation as the recording: (real − sim_0(g)) − (real − sim_r(x)) = sim_r(x) − sim_0(g)
+        vals.append(st.robust_fit(g, [D - Dr for D in Ds], w, lo, hi, par.log and lo > 0))
+    rel = float(np.sqrt(np.mean(((np.asarray(vals) - x) / x) ** 2))) if x > 0 else float("nan")
+    return {"n": n, "fitted": [float(v) for v in vals], "relative_sd": rel}
 
 
 def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
@@ -748,6 +785,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # signal-to-noise of its signature (reconstruction errors elsewhere do not pull the fit)
         wfit = w * st.information_weights(sigs[cand.name], current_D)
         allv, per_fold, ci, fit_info = _fit(study, base, cand, wfit, folds, setup.grid, rng)
+        curve = fit_info.pop("curve")
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
         for f, val in enumerate(per_fold):
@@ -783,6 +821,19 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                                          f"at FWHM; ellipse and circle not separated)")
         log(f"  fitted {cand.name} = {allv} (CI {ci}); held-out error {eb:.3f} → {ea:.3f}, p = {p:.3g}"
             f"{'; worse: ' + ', '.join(worse) if worse else ''} → {'accepted' if ok else 'rejected'}")
+        if ok and cand.realisations and setup.realisations > 0:
+            sc = _realisation_scatter(study, base, cand, allv, curve, wfit, setup.realisations)
+            x = cand.coords(allv)[cand.params[0].name]
+            blo, bhi = cand.bounds(study.survey)[cand.params[0].name]
+            if np.isfinite(sc["relative_sd"]):  # the trees' CI and the draws' scatter, in quadrature
+                half = 1.96 * sc["relative_sd"] * x
+                effects[-1]["ci95_trees"] = {cand.params[0].name: ci}
+                effects[-1]["ci95"] = {cand.params[0].name: [
+                    float(max(blo, x - np.hypot(max(x - ci[0], 0.0), half))),
+                    float(min(bhi, x + np.hypot(max(ci[1] - x, 0.0), half)))]}
+            effects[-1]["realisation_scatter"] = sc
+            log(f"  {sc['n']} further draws of its process fit {', '.join(f'{v:.3g}' for v in sc['fitted'])} "
+                f"(relative SD {sc['relative_sd']:.2f}); CI {effects[-1]['ci95'][cand.params[0].name]}")
         if not ok:
             break
         accepted.append(cand.name)

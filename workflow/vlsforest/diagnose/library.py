@@ -114,6 +114,11 @@ class Candidate:
     render: str             # "hits" (re-detection of stored sub-ray hits) or "trace"
     description: str
     keys: tuple = ()        # the values' names (the recording physics'), when not the searched parameters'
+    #: its simulation is one draw of a random process with few independent samples over a plot
+    #: (trajectory errors: smooth channels of GPS time); the recording is another draw, so its
+    #: fitted value carries the scatter of both, which the diagnosis measures by simulating
+    #: further draws (``"realisation": r`` among the values, see :meth:`apply`)
+    realisations: bool = False
 
     @property
     def value_keys(self) -> tuple:
@@ -196,6 +201,10 @@ class Candidate:
     def apply(self, survey: dict, values: dict) -> tuple[dict, dict]:
         """A copy of ``survey`` with the candidate set to ``values``; also the scene edits.
 
+        For a candidate with :attr:`realisations`, ``values`` may hold ``"realisation": r``
+        (an integer ≥ 1): the survey's seed is then replaced by one derived from it and ``r``,
+        so its random process is drawn anew (0 or absent: the survey's own draw).
+
         Returns
         -------
         (dict, dict)
@@ -232,6 +241,12 @@ class Candidate:
             tn["position_sigma_m"] = float(values["position_sigma_m"])
             tn.setdefault("correlation_s", 2.0)
             s["trajectory_noise"] = tn
+        r = values.get("realisation", 0)
+        if r:  # another draw of the candidate's random process: a seed derived from the survey's
+            if not self.realisations:
+                raise ConfigError(f"{self.name}: draws no random realisation (got realisation={r!r})")
+            seq = np.random.SeedSequence([int(s.get("seed", 0)), int(r)], spawn_key=(0x5EED,))
+            s["seed"] = int(seq.generate_state(1, np.uint32)[0] >> 1)
         s["overrides"] = ov
         return s, edits
 
@@ -253,7 +268,7 @@ CANDIDATES = {c.name: c for c in (
     Candidate("range_noise", (Param("sigma_m", 0.0, 0.25, 0.05),), "noise", "hits",
               "random range error of each echo"),
     Candidate("trajectory_noise", (Param("position_sigma_m", 0.0, 0.3, 0.05),), "noise", "trace",
-              "time-correlated position errors of the platform (GNSS/INS)"),
+              "time-correlated position errors of the platform (GNSS/INS)", realisations=True),
     Candidate("incidence_reflectance", (Param("specularity", 0.0, 0.9, 0.3),), "link budget", "hits",
               "reflection depends on the incidence angle more than Lambert's law (Phong, cos-power lobe)"),
     Candidate("tls_occlusion", (Param("top_gain", 0.0, 8.0, 1.0),), "model input", "trace",
