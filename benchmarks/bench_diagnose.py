@@ -199,17 +199,19 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
         got = model.get(name)
         if got:  # every value the hidden effect sets (the ellipse: both axes)
             fit_err[name] = max(abs(got[k] - v) / abs(v) for k, v in vals.items())
-    # the accepted hidden effect's CI on its first searched parameter, where that is one of the
-    # hidden values (the ellipse's searched aspect is none): does it hold the hidden value?
+    # the accepted hidden effect's CI on its first searched parameter (the ellipse's: its aspect
+    # ratio): does it hold the hidden value?
     cis = {}
     for e in rep["effects"]:
         if e.get("accepted") and e["name"] in hidden:
+            truth = CANDIDATES[e["name"]].coords(hidden[e["name"]])
             for k, (lo, hi) in (e.get("ci95") or {}).items():
-                if k in hidden[e["name"]]:
+                if k in truth:
                     cis[f"{e['name']}.{k}"] = {"ci95": [lo, hi], "ci95_trees": (e.get("ci95_trees") or {}).get(k),
+                                               "between_observables": (e.get("between_observables") or {}).get(k),
                                                "realisation_relative_sd": (e.get("realisation_scatter") or {}).get(
                                                    "relative_sd"),
-                                               "holds_hidden": bool(lo <= hidden[e["name"]][k] <= hi)}
+                                               "holds_hidden": bool(lo <= truth[k] <= hi)}
     o = rep.get("oracle") or {}
     recov = (o["error_given"] - o["error_told_truth"]) if o else None
     removed = None

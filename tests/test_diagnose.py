@@ -1256,6 +1256,38 @@ def test_a_fit_that_rests_on_one_observable_says_so_and_gives_the_value_without_
     assert "carries" not in rep["verdict"]
 
 
+def test_the_votes_disagreement_widens_the_ci_as_far_as_the_observables_biases_go():
+    """Eight observables cross the grid at x0 = 1.3 with slopes from 1 to 30 (one or two carry
+    most of the weight), 40 trees of unit noise. With no systematic errors the votes agree
+    (scale factor S ≈ 1) and the sampling SD alone covers x0 ~ 95 % of the time. With a
+    reconstruction bias of 0.7 tree-SD per observable (as the null cases show, ~0.5–1 SD), the
+    estimate follows the heaviest voters' biases: the sampling SD covers x0 in far fewer draws,
+    S grows, and the SD it adds (``systematic_sd``) brings the coverage back near nominal."""
+    g = np.linspace(0.5, 2.5, 7)
+    out = {}
+    for beta in (0.0, 0.7):
+        rng = np.random.default_rng(5)
+        hits_samp = hits_tot = 0
+        scale = []
+        for _ in range(300):
+            slopes = np.exp(rng.uniform(0, np.log(30), 8)) * rng.choice([-1, 1], 8)
+            bias = beta * rng.normal(size=8)
+            noise = rng.normal(size=(40, 8))
+            Ds = [slopes * (1.3 - gi) + bias + noise for gi in g]
+            val, votes, sp = st.crossing_votes(g, Ds, np.ones(8), 0.5, 2.5, detail=True)
+            assert val == st.robust_fit(g, Ds, np.ones(8), 0.5, 2.5)  # the estimate is the same
+            v = np.array([sp["sampling_var"][j] for j in votes])
+            samp = np.sqrt(1 / np.sum(1 / v))
+            assert sp["systematic_sd"] == pytest.approx(np.sqrt(max(0.0, sp["scale_factor"] ** 2 - 1) / np.sum(1 / v)))
+            hits_samp += abs(val - 1.3) <= 1.96 * samp
+            hits_tot += abs(val - 1.3) <= 1.96 * np.hypot(samp, sp["systematic_sd"])
+            scale.append(sp["scale_factor"])
+        out[beta] = (hits_samp / 300, hits_tot / 300, float(np.median(scale)))
+    assert 0.8 <= out[0.0][1] and 0.75 < out[0.0][2] < 1.25  # no biases: S ≈ 1, nominal-ish coverage
+    assert out[0.7][0] < 0.4 and out[0.7][2] > 3             # biases: the sampling SD misses, S grows …
+    assert out[0.7][1] >= 0.75                               # … and the widened CI covers again
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(monkeypatch, seed):
     """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the
@@ -1276,20 +1308,22 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     assert sc["n"] == 3 and sc["fitted"] == pytest.approx([x * 1.3, x * 0.8, x * 1.1], rel=1e-9)
     assert sc["relative_sd"] == pytest.approx(np.sqrt((0.3 ** 2 + 0.2 ** 2 + 0.1 ** 2) / 3), rel=1e-9)
     trees, ci = eff["ci95_trees"]["position_sigma_m"], eff["ci95"]["position_sigma_m"]
-    assert not trees[0] <= 0.08 <= trees[1]  # the trees' CI misses the hidden value …
-    assert ci[0] <= 0.08 <= ci[1]            # … the draws' scatter puts it inside
-    half = 1.96 * sc["relative_sd"] * x
-    assert ci == pytest.approx([x - np.hypot(x - trees[0], half), x + np.hypot(trees[1] - x, half)])
-    # without further draws: the trees' CI, and no draw simulated
+    # without further draws: the CI of the trees and the observables' disagreement, no draw simulated
     study = _LinearStudy(hidden, seed=seed, draws=draws)
     monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
     rep0 = core.diagnose(core.Setup(scenario="uls", plots=[], seed=seed, realisations=0), log=lambda m: None)
     eff0 = rep0["effects"][0]
-    assert eff0["ci95"] == {"position_sigma_m": trees} and "realisation_scatter" not in eff0
+    ci0 = eff0["ci95"]["position_sigma_m"]
+    assert eff0["parameters"] == eff["parameters"] and "realisation_scatter" not in eff0
     assert not any('"realisation"' in k for k in study.simulated)
+    assert ci0[0] <= trees[0] and ci0[1] >= trees[1]
+    assert not trees[0] <= 0.08 <= trees[1]  # the trees' CI misses σ …
+    assert ci[0] <= 0.08 <= ci[1]            # … with the draws' scatter the CI holds it
+    half = 1.96 * sc["relative_sd"] * x
+    assert ci == pytest.approx([x - np.hypot(x - ci0[0], half), x + np.hypot(ci0[1] - x, half)])
     # a candidate with no random draws gets none
     rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.06}}, seed=seed), seed=seed)
-    assert "realisation_scatter" not in rep["effects"][0] and "ci95_trees" not in rep["effects"][0]
+    assert "realisation_scatter" not in rep["effects"][0]
 
 
 def test_a_further_draw_of_trajectory_noise_changes_only_the_surveys_seed():

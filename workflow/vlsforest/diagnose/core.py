@@ -615,19 +615,26 @@ def _tie_break(ranked, sigs, cosm, D0, w):
 def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: np.ndarray, n_grid: int,
          rng: np.random.Generator):
     """Grid fit of a candidate (coordinate search over its searched parameters, from the values
-    ``base`` simulates); per-fold and all-tree values (as :meth:`Candidate.apply` takes them),
-    the bootstrap CI of the first searched parameter, and ``{"votes", "rests_on"}``: the all-tree
-    fit's votes per searched parameter (observable → its crossing and its share of the weight;
-    empty where the least-squares grid minimum was taken) and, for a parameter whose fit rests on
-    one observable (more than :data:`DOMINANT_VOTE` of the weight), that observable, its share
-    and the value fitted without it."""
+    ``base`` simulates).
+
+    Returns the all-tree and per-fold values (as :meth:`Candidate.apply` takes them); the 95 % CI
+    of the first searched parameter: the bootstrap over trees widened, in quadrature, by the SD
+    that the observables' systematic errors give the estimate (their disagreement beyond
+    sampling, :func:`.stats.crossing_votes`); and a mapping with ``votes`` (per searched
+    parameter: observable → its crossing and its share of the weight; empty where the
+    least-squares grid minimum was taken), ``rests_on`` (for a parameter whose fit rests on one
+    observable, more than :data:`DOMINANT_VOTE` of the weight: that observable, its share and
+    the value fitted without it), ``between_observables`` (per parameter: the crossings'
+    ``scale_factor`` S — their disagreement beyond sampling, ≈ 1 when they agree — and the
+    estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``), ``ci95_trees`` (the bootstrap CI alone) and ``curve`` (the first parameter's
+    grid and residuals, for :func:`_realisation_scatter`; not for the report)."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
     k = int(folds.max()) + 1
     per_fold = [dict(cur) for _ in range(k)]
     allv = dict(cur)
-    curves, votes, rests_on = {}, {}, {}
+    curves, votes, rests_on, spread = {}, {}, {}, {}
     for par in cand.params:
         lo, hi = bounds[par.name]
         if par.n_grid:  # its own grid, through the reference step (simulated for the signature)
@@ -642,7 +649,7 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
             Ds.append(study.residual(_merge(base, cand.name, cand.values(start, val))))
         curves[par.name] = (g, Ds)
         lg = par.log and lo > 0
-        allv[par.name], v = st.crossing_votes(g, Ds, w, lo, hi, lg)
+        allv[par.name], v, spread[par.name] = st.crossing_votes(g, Ds, w, lo, hi, lg, detail=True)
         total = sum(q for _, q in v.values())
         votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total if total > 0 else 0.0}
                            for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
@@ -667,9 +674,27 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     for _ in range(300):
         rows = rng.integers(0, n, n)
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
-    ci = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
+    ci_trees = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
+    # the observables' systematic errors (their disagreement beyond sampling) widen it, in quadrature
+    ci = _widened(ci_trees, allv[par.name], spread[par.name].get("systematic_sd", 0.0), par.log and lo > 0, lo, hi)
+    between = {q.name: {"scale_factor": spread[q.name]["scale_factor"], "systematic_sd": spread[q.name]["systematic_sd"],
+                        "log_scale": bool(q.log and bounds[q.name][0] > 0)} for q in cand.params if spread.get(q.name)}
     return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
-            {"votes": votes, "rests_on": rests_on, "curve": curves[par.name]})
+            {"votes": votes, "rests_on": rests_on, "between_observables": between,
+             "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name]})
+
+
+def _widened(ci: list, x: float, sd: float, log: bool, lo: float, hi: float) -> list:
+    """``ci`` about ``x`` with ``± 1.96 sd`` added in quadrature on each side (on the log scale
+    for ``log``), within the bounds."""
+    if not sd > 0:
+        return list(ci)
+    if log and x > 0 and ci[0] > 0:
+        t, a, b = np.log(x), np.log(ci[0]), np.log(ci[1])
+        return [float(max(lo, np.exp(t - np.hypot(max(t - a, 0.0), 1.96 * sd)))),
+                float(min(hi, np.exp(t + np.hypot(max(b - t, 0.0), 1.96 * sd))))]
+    return [float(max(lo, x - np.hypot(max(x - ci[0], 0.0), 1.96 * sd))),
+            float(min(hi, x + np.hypot(max(ci[1] - x, 0.0), 1.96 * sd)))]
 
 
 def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: dict, curve: tuple,
@@ -825,12 +850,8 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
             sc = _realisation_scatter(study, base, cand, allv, curve, wfit, setup.realisations)
             x = cand.coords(allv)[cand.params[0].name]
             blo, bhi = cand.bounds(study.survey)[cand.params[0].name]
-            if np.isfinite(sc["relative_sd"]):  # the trees' CI and the draws' scatter, in quadrature
-                half = 1.96 * sc["relative_sd"] * x
-                effects[-1]["ci95_trees"] = {cand.params[0].name: ci}
-                effects[-1]["ci95"] = {cand.params[0].name: [
-                    float(max(blo, x - np.hypot(max(x - ci[0], 0.0), half))),
-                    float(min(bhi, x + np.hypot(max(ci[1] - x, 0.0), half)))]}
+            if np.isfinite(sc["relative_sd"]):  # the CI so far and the draws' scatter, in quadrature
+                effects[-1]["ci95"] = {cand.params[0].name: _widened(ci, x, sc["relative_sd"] * x, False, blo, bhi)}
             effects[-1]["realisation_scatter"] = sc
             log(f"  {sc['n']} further draws of its process fit {', '.join(f'{v:.3g}' for v in sc['fitted'])} "
                 f"(relative SD {sc['relative_sd']:.2f}); CI {effects[-1]['ci95'][cand.params[0].name]}")

@@ -323,14 +323,24 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     observable). Observables that never cross — those whose residual is dominated by an error
     the candidate cannot remove, such as the voxel model's — do not vote, so they cannot pull
     the fit the way they pull a least-squares fit. Falls back to the least-squares grid minimum
-    when fewer than three observables cross. :func:`crossing_votes` gives the votes.
+    when fewer than three observables cross. :func:`crossing_votes` gives the votes and how far
+    they disagree.
     """
     return crossing_votes(x, Ds, w, lo, hi, log, rows)[0]
 
 
 def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log: bool = False,
-                   rows=None) -> tuple[float, dict]:
-    """:func:`robust_fit`'s estimate and its votes.
+                   rows=None, detail: bool = False):
+    """:func:`robust_fit`'s estimate and its votes; with ``detail``, how far the votes disagree.
+
+    Each crossing has a sampling variance ``v_j``: the standard error of the observable's mean
+    residual there over the residual's slope along the grid (on the log scale for ``log``).
+    The votes' disagreement beyond these is measured as in the particle physicists' combination
+    of inconsistent measurements (Birge ratio / PDG scale factor): ``S² = Q / (k − 1)`` with
+    ``Q = Σ (t_j − t̄)² / v_j`` about the inverse-variance mean ``t̄`` of the ``k`` crossings ``t_j``.
+    ``S² ≫ 1`` says the observables carry systematic errors of their own (the reconstruction's,
+    which scale with each observable's across-tree spread, so the weights stay as they are);
+    the estimate then has an SD beyond sampling of ``√(max(0, S² − 1) / Σ 1/v_j)``.
 
     Returns
     -------
@@ -339,15 +349,23 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
     votes : dict
         Observable index → (crossing, weight) of every observable that voted; empty when fewer
         than three crossed and the least-squares grid minimum was taken instead.
+    spread : dict, only with ``detail``
+        ``scale_factor`` (S), ``systematic_sd`` (the SD beyond sampling; on the log scale for
+        ``log``) and ``sampling_var`` (observable index → ``v_j``); empty without votes.
     """
     x = np.asarray(x, float)
     order = np.argsort(x)
     x = x[order]
-    with np.errstate(invalid="ignore"):
-        M = np.array([np.nanmean(D if rows is None else D[rows], axis=0) for D in Ds])[order]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sub = [D if rows is None else D[rows] for D in Ds]
+        M = np.array([np.nanmean(D, axis=0) for D in sub])[order]
+        S = np.array([np.nanstd(D, axis=0, ddof=1) / np.sqrt(np.maximum(np.sum(np.isfinite(D), axis=0), 1))
+                      for D in sub])[order] if detail else None  # standard error of each mean residual
     loss = [bias_loss(D, w, rows) for D in Ds]
     x_ls = grid_minimum(np.asarray(x), np.asarray(loss)[order], lo, hi, log)
-    votes = {}
+    logt = log and bool(np.all(x > 0))
+    t = np.log(x) if logt else x
+    votes, var = {}, {}
     for j in range(M.shape[1]):
         m = M[:, j]
         if w[j] <= 0 or not np.isfinite(m).all():
@@ -358,14 +376,34 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         cand = []
         for i in cross:
             if m[i] == m[i + 1]:
-                cand.append(x[i])
-            else:
-                cand.append(x[i] + (x[i + 1] - x[i]) * m[i] / (m[i] - m[i + 1]))
-        votes[j] = (float(min(cand, key=lambda v: abs(v - x_ls))), float(w[j] * float(m.max() - m.min()) ** 2))
+                cand.append((x[i], np.inf))
+                continue
+            f = m[i] / (m[i] - m[i + 1])
+            v = np.inf
+            if detail:
+                se = (1 - f) * S[i, j] + f * S[i + 1, j]
+                v = float((se * (t[i + 1] - t[i]) / (m[i + 1] - m[i])) ** 2) if np.isfinite(se) else np.inf
+            cand.append((x[i] + (x[i + 1] - x[i]) * f, v))
+        r, v = min(cand, key=lambda c: abs(c[0] - x_ls))
+        votes[j] = (float(r), float(w[j] * float(m.max() - m.min()) ** 2))
+        var[j] = v
     if len(votes) < 3:
-        return x_ls, {}
+        return (x_ls, {}, {}) if detail else (x_ls, {})
     roots = np.array([r for r, _ in votes.values()])
     wts = np.array([q for _, q in votes.values()])
     k = np.argsort(roots, kind="stable")
     c = np.cumsum(wts[k])
-    return float(np.clip(roots[k][np.searchsorted(c, 0.5 * c[-1])], lo, hi)), votes
+    value = float(np.clip(roots[k][np.searchsorted(c, 0.5 * c[-1])], lo, hi))
+    if not detail:
+        return value, votes
+    v = np.array([var[j] for j in votes])
+    ok = np.isfinite(v) & (v > 0)
+    scale, sys_sd = float("nan"), 0.0
+    if ok.sum() >= 2:
+        tr = np.log(roots[ok]) if logt else roots[ok]
+        a = 1.0 / v[ok]
+        Q = float(np.sum(a * (tr - np.sum(a * tr) / np.sum(a)) ** 2))
+        scale = float(np.sqrt(Q / (ok.sum() - 1)))
+        sys_sd = float(np.sqrt(max(0.0, scale ** 2 - 1.0) / np.sum(a)))
+    return value, votes, {"scale_factor": scale, "systematic_sd": sys_sd,
+                          "sampling_var": {j: float(vj) for j, vj in zip(votes, v)}}
