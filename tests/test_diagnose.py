@@ -1319,6 +1319,7 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     assert ci0[0] <= trees[0] and ci0[1] >= trees[1]
     assert not trees[0] <= 0.08 <= trees[1]  # the trees' CI misses σ …
     assert ci[0] <= 0.08 <= ci[1]            # … with the draws' scatter the CI holds it
+    assert f"trajectory_noise [position_sigma_m = {x:.3g}, 95 % CI {ci[0]:.3g}–{ci[1]:.3g}]" in rep["verdict"]
     half = 1.96 * sc["relative_sd"] * x
     assert ci == pytest.approx([x - np.hypot(x - ci0[0], half), x + np.hypot(ci0[1] - x, half)])
     # a candidate with no random draws gets none

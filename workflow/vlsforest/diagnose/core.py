@@ -883,7 +883,14 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
     if not significant:
         verdict = "no significant mismatch"
     elif accepted:
-        verdict = "mismatch explained by " + " + ".join(a + group_note.get(a, "") for a in accepted)
+        def fitted(e):  # the first searched parameter's value and CI
+            c = lib.CANDIDATES[e["name"]]
+            par = c.params[0].name
+            x, (lo, hi) = c.coords(e["parameters"])[par], e["ci95"][par]
+            return f" [{par} = {x:.3g}, 95 % CI {lo:.3g}–{hi:.3g}]"
+
+        eff_of = {e["name"]: e for e in effects if e.get("accepted")}
+        verdict = "mismatch explained by " + " + ".join(a + fitted(eff_of[a]) + group_note.get(a, "") for a in accepted)
         worse = sorted({m for e in effects if e.get("accepted") for m in e.get("worse_metrics", [])})
         if worse:
             verdict += f" (held-out {', '.join(worse)} got worse: the voxel model's own error compensated there)"
