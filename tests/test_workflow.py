@@ -191,6 +191,8 @@ def _mutate(cfg, what):
         cfg["methods"]["fixed_0.25"]["kind"] = "voxelz"
     elif what == "misspelt_segment_key":
         cfg["segment"] = {"stem_bridges": 20}
+    elif what == "negative_realisations":
+        cfg.setdefault("diagnosis", {})["realisations"] = -1
     elif what == "real_plot_without_scans":
         cfg["plots"]["R1"] = {"kind": "real", "tls": ["a.laz"], "plot_json": "p.json"}
     return cfg
@@ -208,6 +210,7 @@ BAD_CONFIGS = [
     ("real_plot_without_scans", "plots.R1", "'scans' is a required property"),
     ("unknown_method_kind", "methods.fixed_0.25.kind", "unknown kind 'voxelz'"),
     ("misspelt_segment_key", "segment", "'stem_bridges' was unexpected"),
+    ("negative_realisations", "diagnosis.realisations", "-1 is less than the minimum of 0"),
 ]
 
 

@@ -376,6 +376,7 @@ def diagnosis_param(wildcards):
         "candidates": d.get("candidates") or None,
         **({"metric": d["metric"]} if "metric" in d else {}),
         **({"beam_sample_quality": d["beam_sample_quality"]} if "beam_sample_quality" in d else {}),
+        **({"realisations": d["realisations"]} if "realisations" in d else {}),
         "plots": {
             plot: {
                 "real": _plot_path(plot, "recording", recording_of(wildcards.scenario)),
