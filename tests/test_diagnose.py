@@ -1293,8 +1293,9 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the
     simulation another (1.0), so the fit lands at σ · 1.25, and the bootstrap over trees — which
     sees neither draw's scatter — misses σ. Three further draws (amplitudes 1.3, 0.8, 1.1) each
-    fit at the fitted value × their amplitude, exactly in this linear stand-in; their RMS relative
-    deviation widens the CI, which then holds σ. Without further draws the CI is the trees'."""
+    fit at the fitted value × their amplitude, exactly in this linear stand-in; the four draws'
+    relative SD × √2 (the fit's error is the ratio of two draws) widens the CI, which then holds
+    σ. Without further draws the CI is that of the trees and the observables' disagreement."""
     from vlsforest.diagnose import core
 
     hidden = {"trajectory_noise": {"position_sigma_m": 0.08}}
@@ -1306,7 +1307,8 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     assert x == pytest.approx(0.08 * 1.25, rel=0.15)
     sc = eff["realisation_scatter"]
     assert sc["n"] == 3 and sc["fitted"] == pytest.approx([x * 1.3, x * 0.8, x * 1.1], rel=1e-9)
-    assert sc["relative_sd"] == pytest.approx(np.sqrt((0.3 ** 2 + 0.2 ** 2 + 0.1 ** 2) / 3), rel=1e-9)
+    c = np.array([1.0, 1.3, 0.8, 1.1])  # the four draws' amplitudes relative to draw 0's
+    assert sc["relative_sd"] == pytest.approx(np.sqrt(2) * c.std(ddof=1) / c.mean(), rel=1e-9)
     trees, ci = eff["ci95_trees"]["position_sigma_m"], eff["ci95"]["position_sigma_m"]
     # without further draws: the CI of the trees and the observables' disagreement, no draw simulated
     study = _LinearStudy(hidden, seed=seed, draws=draws)

@@ -701,13 +701,15 @@ def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: d
                          w: np.ndarray, n: int) -> dict:
     """The scatter of a random candidate's fit between draws of its process.
 
-    Draws 1 … ``n`` of the process are simulated at the fitted values ``allv``; each is taken as
-    if it were the recording and fitted on the all-tree grid ``curve`` (draw 0's simulations)
-    the way the diagnosis fits (:func:`.stats.robust_fit`, weights ``w``). Draw r gives the
-    value at which draw 0 looks like draw r at ``allv``: ``allv · a_r / a_0`` for amplitudes
-    ``a`` of the draws, so its relative deviation has the spread of the real fit's error, which
-    is ``a_real / a_0`` (a recording is one draw too). Returns the fitted values and their RMS
-    relative deviation.
+    Draws 1 … ``n`` of the process are simulated at the fitted value ``x`` (``allv``); each is
+    taken as if it were the recording and fitted on the all-tree grid ``curve`` (draw 0's
+    simulations) the way the diagnosis fits (:func:`.stats.robust_fit`, weights ``w``). Draw r
+    fits at ``x · a_r / a_0``, ``a`` being the draws' amplitudes (how strongly each moves the
+    observables), so ``c = (1, x_1 / x, …, x_n / x)`` are ``n + 1`` draws' amplitudes up to one
+    factor, and their relative SD (``ddof = 1``) is that of one draw. The fit's own error is
+    ``a_real / a_0`` — two draws, the recording's and the simulation's — so its relative SD is
+    ``√2`` times that (``relative_sd``). Using draw 0 as one of the samples keeps the estimate
+    from depending on whether draw 0 happened to be a weak or a strong one.
     """
     par = cand.params[0]
     g, Ds = curve
@@ -718,7 +720,8 @@ def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: d
         Dr = study.residual(_merge(base, cand.name, dict(allv, realisation=r)))
         # draw r's simulation as the recording: (real − sim_0(g)) − (real − sim_r(x)) = sim_r(x) − sim_0(g)
         vals.append(st.robust_fit(g, [D - Dr for D in Ds], w, lo, hi, par.log and lo > 0))
-    rel = float(np.sqrt(np.mean(((np.asarray(vals) - x) / x) ** 2))) if x > 0 else float("nan")
+    c = np.r_[1.0, np.asarray(vals) / x] if x > 0 else np.array([np.nan])
+    rel = float(np.sqrt(2.0) * np.std(c, ddof=1) / np.mean(c)) if len(c) > 1 and np.mean(c) > 0 else float("nan")
     return {"n": n, "fitted": [float(v) for v in vals], "relative_sd": rel}
 
 
