@@ -626,8 +626,9 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     observable, more than :data:`DOMINANT_VOTE` of the weight: that observable, its share and
     the value fitted without it), ``between_observables`` (per parameter: the crossings'
     ``scale_factor`` S — their disagreement beyond sampling, ≈ 1 when they agree — and the
-    estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``), ``ci95_trees`` (the bootstrap CI alone) and ``curve`` (the first parameter's
-    grid and residuals, for :func:`_realisation_scatter`; not for the report)."""
+    estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``),
+    ``ci95_trees`` (the bootstrap CI alone) and ``curve`` (the first parameter's grid and
+    residuals, for :func:`_realisation_scatter`; not for the report)."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
@@ -677,8 +678,10 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     ci_trees = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
     # the observables' systematic errors (their disagreement beyond sampling) widen it, in quadrature
     ci = _widened(ci_trees, allv[par.name], spread[par.name].get("systematic_sd", 0.0), par.log and lo > 0, lo, hi)
-    between = {q.name: {"scale_factor": spread[q.name]["scale_factor"], "systematic_sd": spread[q.name]["systematic_sd"],
-                        "log_scale": bool(q.log and bounds[q.name][0] > 0)} for q in cand.params if spread.get(q.name)}
+    between = {q.name: {"scale_factor": spread[q.name]["scale_factor"],
+                        "systematic_sd": spread[q.name]["systematic_sd"],
+                        "log_scale": bool(q.log and bounds[q.name][0] > 0)}
+               for q in cand.params if spread.get(q.name)}
     return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
             {"votes": votes, "rests_on": rests_on, "between_observables": between,
              "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name]})
