@@ -29,7 +29,8 @@ Steps (see the README section "Diagnosis"):
    draw of a random process with few independent samples over a plot (trajectory noise:
    :attr:`.library.Candidate.realisations`), further draws are simulated at the fitted value and
    each is fitted as if it were the recording; their scatter — which the recording's own draw
-   has too — widens the CI (``ci95``; ``ci95_trees`` is the bootstrap over trees alone).
+   has too — widens the CI. So does the votes' disagreement beyond their sampling variances
+   (:func:`.stats.crossing_votes`); ``ci95_trees`` is the bootstrap over trees alone.
    Then a second effect is sought the same way on top of the first.
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the
@@ -105,7 +106,8 @@ class Setup:
     #: sub-rays split fewer echoes, so a wider beam is fitted); see the README "Diagnosis"
     beam_sample_quality: int | None = None
     #: further draws of a random candidate's process simulated at its fitted value, whose
-    #: scatter widens its CI (one trace each; 0: the CI is the bootstrap over trees alone)
+    #: scatter widens its CI (one trace each; 0: no draws, the CI holds the trees' bootstrap and
+    #: the observables' disagreement only)
     realisations: int = 3
     #: benchmarks only: the hidden truth as candidate values; the report then also gives the
     #: error of a simulation told these values (the "recoverable" error's reference)
@@ -285,8 +287,7 @@ def _own_realisation(survey: dict, seed: int) -> dict:
     flight's errors are one unknown draw of the process; the diagnosis models the process with a
     draw of its own.
     """
-    own = np.random.SeedSequence([int(seed), int(survey.get("seed", 0))], spawn_key=(0xD1A9,))
-    return dict(survey, seed=int(own.generate_state(1, np.uint32)[0] >> 1))
+    return dict(survey, seed=lib.derived_seed([seed, survey.get("seed", 0)], 0xD1A9))
 
 
 class _PlotSim:
@@ -692,12 +693,10 @@ def _widened(ci: list, x: float, sd: float, log: bool, lo: float, hi: float) -> 
     for ``log``), within the bounds."""
     if not sd > 0:
         return list(ci)
-    if log and x > 0 and ci[0] > 0:
-        t, a, b = np.log(x), np.log(ci[0]), np.log(ci[1])
-        return [float(max(lo, np.exp(t - np.hypot(max(t - a, 0.0), 1.96 * sd)))),
-                float(min(hi, np.exp(t + np.hypot(max(b - t, 0.0), 1.96 * sd))))]
-    return [float(max(lo, x - np.hypot(max(x - ci[0], 0.0), 1.96 * sd))),
-            float(min(hi, x + np.hypot(max(ci[1] - x, 0.0), 1.96 * sd)))]
+    to, back = (np.log, np.exp) if log and x > 0 and ci[0] > 0 else (float, float)
+    t, a, b = to(x), to(ci[0]), to(ci[1])
+    return [float(max(lo, back(t - np.hypot(max(t - a, 0.0), 1.96 * sd)))),
+            float(min(hi, back(t + np.hypot(max(b - t, 0.0), 1.96 * sd))))]
 
 
 def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: dict, curve: tuple,

@@ -245,8 +245,7 @@ class Candidate:
         if r:  # another draw of the candidate's random process: a seed derived from the survey's
             if not self.realisations:
                 raise ConfigError(f"{self.name}: draws no random realisation (got realisation={r!r})")
-            seq = np.random.SeedSequence([int(s.get("seed", 0)), int(r)], spawn_key=(0x5EED,))
-            s["seed"] = int(seq.generate_state(1, np.uint32)[0] >> 1)
+            s["seed"] = derived_seed([s.get("seed", 0), r], 0x5EED)
         s["overrides"] = ov
         return s, edits
 
@@ -318,6 +317,13 @@ def occlusion_corrected(model, top_gain: float):
     centre = np.clip(centre, lo + half[:, None], lo + model.size - half[:, None])
     pad = None if model.pad is None else model.pad * g
     return VoxelModel(model.size, model.ijk, model.owner, half, centre, pad)
+
+
+def derived_seed(entropy, key: int) -> int:
+    """A survey seed (a non-negative 31-bit integer) derived from the integers ``entropy`` and the
+    stream ``key``: the same inputs give the same seed, other inputs or keys an unrelated one."""
+    seq = np.random.SeedSequence([int(e) for e in entropy], spawn_key=(int(key),))
+    return int(seq.generate_state(1, np.uint32)[0] >> 1)
 
 
 def merge(base: dict, name: str, values: dict) -> dict:
