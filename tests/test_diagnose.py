@@ -1288,6 +1288,64 @@ def test_the_votes_disagreement_widens_the_ci_as_far_as_the_observables_biases_g
     assert out[0.7][1] >= 0.75                               # … and the widened CI covers again
 
 
+def test_bias_scale_measures_the_observables_biases_in_tree_sds():
+    """Columns with biases drawn at β across-tree SDs give β back (sampling's 1/n taken out);
+    unbiased ones give ≈ 0; unusable columns are skipped and none at all give NaN."""
+    rng = np.random.default_rng(3)
+    for beta in (0.0, 0.3, 0.8):
+        got = []
+        for _ in range(50):
+            D = rng.normal(size=(40, 30)) * rng.uniform(0.5, 20, 30) + 0.0
+            D += beta * rng.normal(size=30) * D.std(axis=0, ddof=1)
+            D[:, 5] = np.nan
+            got.append(st.bias_scale(D, range(30)))
+        assert np.median(got) == pytest.approx(beta, abs=0.12)
+    assert np.isnan(st.bias_scale(np.full((10, 3), np.nan), range(3)))
+    assert st.bias_allowance(0.5, {0: 0.9, 1: 0.1}, {0: 2.0, 1: 4.0}) == pytest.approx(0.5 * np.hypot(1.8, 0.4))
+    assert st.bias_allowance(float("nan"), {0: 1.0}, {0: 2.0}) == 0.0
+
+
+def test_the_bias_allowance_covers_a_fit_whose_voters_share_one_bias():
+    """One steep observable carries nearly all the weight and three shallow ones vote beside it;
+    twelve more do not move along the grid. Every observable carries a reconstruction bias of
+    β tree-SDs, but the voters' biases lie along the candidate's own signature (the voxel model's
+    error mimics the effect: the steep voter's bias is β tree-SDs, the shallow ones' as much
+    smaller as their slopes), so all voters cross at the same wrong value: they agree (S ≈ 1),
+    their disagreement cannot show the bias, and the CI of sampling and disagreement misses
+    x0 = 1.5 in most draws. The allowance — β measured on the
+    twelve others, given to the voters — brings the coverage near nominal; with no biases it stays
+    near the sampling CI."""
+    g = np.linspace(0.3, 2.7, 9)
+    slopes = np.r_[40.0, 4.0, -3.5, 5.0, np.zeros(12)]
+    out = {}
+    for beta in (0.0, 0.8):
+        rng = np.random.default_rng(11)
+        hits_old = hits_new = 0
+        width, scale = [], []
+        for _ in range(300):
+            bias = beta * rng.normal(size=16)
+            bias[:4] = beta * rng.normal() * slopes[:4] / slopes[0]  # along the signature: x0 + the same shift
+            noise = rng.normal(size=(40, 16))
+            Ds = [slopes * (1.5 - gi) + bias + noise for gi in g]
+            val, votes, sp = st.crossing_votes(g, Ds, np.ones(16), 0.3, 2.7, detail=True)
+            assert set(votes) == {0, 1, 2, 3}
+            total = sum(q for _, q in votes.values())
+            shares = {j: q / total for j, (_, q) in votes.items()}
+            assert shares[0] > 0.9
+            assert sp["bias_shift"][0] == pytest.approx(noise[:, 0].std(ddof=1) / 40, rel=0.01)
+            v = np.array([sp["sampling_var"][j] for j in votes])
+            samp = np.sqrt(1 / np.sum(1 / v))
+            allow = st.bias_allowance(st.bias_scale(Ds[0], range(4, 16)), shares, sp["bias_shift"])
+            hits_old += abs(val - 1.5) <= 1.96 * np.hypot(samp, sp["systematic_sd"])
+            hits_new += abs(val - 1.5) <= 1.96 * np.hypot(samp, max(sp["systematic_sd"], allow))
+            width.append(np.hypot(samp, max(sp["systematic_sd"], allow)) / samp)
+            scale.append(sp["scale_factor"])
+        out[beta] = (hits_old / 300, hits_new / 300, float(np.median(width)), float(np.median(scale)))
+    assert out[0.8][3] < 1.5                          # the voters agree …
+    assert out[0.8][0] < 0.5 and out[0.8][1] >= 0.8   # … so the disagreement misses; the allowance covers
+    assert out[0.0][1] >= 0.9 and out[0.0][2] < 1.6   # no biases: the CI stays near the sampling one
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(monkeypatch, seed):
     """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the

@@ -29,8 +29,11 @@ Steps (see the README section "Diagnosis"):
    draw of a random process with few independent samples over a plot (trajectory noise:
    :attr:`.library.Candidate.realisations`), further draws are simulated at the fitted value and
    each is fitted as if it were the recording; their scatter — which the recording's own draw
-   has too — widens the CI. So does the votes' disagreement beyond their sampling variances
-   (:func:`.stats.crossing_votes`); ``ci95_trees`` is the bootstrap over trees alone.
+   has too — widens the CI. So do the voters' own systematic errors: the larger of their
+   disagreement beyond their sampling variances (:func:`.stats.crossing_votes`) and the bias
+   allowance, which gives each voter a bias as large, in across-tree SDs, as those the fit leaves
+   in the observables it did not use (:func:`.stats.bias_scale`; it covers a fit that rests on one
+   observable, whose bias no disagreement shows); ``ci95_trees`` is the bootstrap over trees alone.
    Then a second effect is sought the same way on top of the first.
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the
@@ -627,16 +630,19 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     observable, more than :data:`DOMINANT_VOTE` of the weight: that observable, its share and
     the value fitted without it), ``between_observables`` (per parameter: the crossings'
     ``scale_factor`` S — their disagreement beyond sampling, ≈ 1 when they agree — and the
-    estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``),
-    ``ci95_trees`` (the bootstrap CI alone) and ``curve`` (the first parameter's grid and
-    residuals, for :func:`_realisation_scatter`; not for the report)."""
+    estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``; the
+    bias allowance's entries are added by :func:`_bias_allowed`), ``ci95_trees`` (the bootstrap
+    CI alone), ``curve`` (the first parameter's grid and residuals, for
+    :func:`_realisation_scatter`) and ``voters`` (the first parameter's voters' weight shares and
+    bias shifts and every parameter's voters, for :func:`_bias_allowed`); the last two are not
+    for the report."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
     k = int(folds.max()) + 1
     per_fold = [dict(cur) for _ in range(k)]
     allv = dict(cur)
-    curves, votes, rests_on, spread = {}, {}, {}, {}
+    curves, votes, rests_on, spread, used = {}, {}, {}, {}, set()
     for par in cand.params:
         lo, hi = bounds[par.name]
         if par.n_grid:  # its own grid, through the reference step (simulated for the signature)
@@ -653,6 +659,9 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         lg = par.log and lo > 0
         allv[par.name], v, spread[par.name] = st.crossing_votes(g, Ds, w, lo, hi, lg, detail=True)
         total = sum(q for _, q in v.values())
+        used |= set(v)
+        if par is cand.params[0]:  # the voters' weight shares and bias shifts, for the bias allowance
+            spread[par.name]["shares"] = {j: q / total for j, (_, q) in v.items()} if total > 0 else {}
         votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total if total > 0 else 0.0}
                            for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
         top = max(v, key=lambda j: v[j][1]) if total > 0 else None
@@ -683,9 +692,34 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
                         "systematic_sd": spread[q.name]["systematic_sd"],
                         "log_scale": bool(q.log and bounds[q.name][0] > 0)}
                for q in cand.params if spread.get(q.name)}
+    sp = spread.get(par.name) or {}
+    voters = {"shares": sp.get("shares", {}), "bias_shift": sp.get("bias_shift", {}), "used": used}
     return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
             {"votes": votes, "rests_on": rests_on, "between_observables": between,
-             "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name]})
+             "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name], "voters": voters})
+
+
+def _bias_allowed(cand: lib.Candidate, survey: dict, allv: dict, ci: list, fit_info: dict, voters: dict,
+                  D_left: np.ndarray, w: np.ndarray) -> list:
+    """``ci`` with the bias allowance (:func:`.stats.bias_allowance`) where it exceeds the votes'
+    disagreement: the voters are taken to carry biases as large, in across-tree SDs, as those the
+    fit leaves in the observables it did not use (``D_left``, the held-out residuals; β from
+    :func:`.stats.bias_scale`). The disagreement sees such biases only where several voters of
+    comparable precision disagree; a fit that rests on one observable hides its bias from it.
+    Both estimate the same SD, so the larger one is used. Records ``bias_scale`` and ``bias_sd``
+    in ``fit_info["between_observables"]``."""
+    par = cand.params[0]
+    lo, hi = cand.bounds(survey)[par.name]
+    log = bool(par.log and lo > 0)
+    rest = [k for k in range(len(FEATURES)) if w[k] > 0 and k not in voters["used"]]
+    beta = st.bias_scale(D_left, rest)
+    sd = st.bias_allowance(beta, voters["shares"], voters["bias_shift"])
+    row = fit_info["between_observables"].setdefault(par.name, {"scale_factor": None, "systematic_sd": 0.0,
+                                                                 "log_scale": log})
+    row.update(bias_scale=beta, bias_sd=sd, n_unused=len(rest))
+    if not sd > row["systematic_sd"]:
+        return ci
+    return _widened(fit_info["ci95_trees"][par.name], cand.coords(allv)[par.name], sd, log, lo, hi)
 
 
 def _widened(ci: list, x: float, sd: float, log: bool, lo: float, hi: float) -> list:
@@ -815,12 +849,13 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # signal-to-noise of its signature (reconstruction errors elsewhere do not pull the fit)
         wfit = w * st.information_weights(sigs[cand.name], current_D)
         allv, per_fold, ci, fit_info = _fit(study, base, cand, wfit, folds, setup.grid, rng)
-        curve = fit_info.pop("curve")
+        curve, voters = fit_info.pop("curve"), fit_info.pop("voters")
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
         for f, val in enumerate(per_fold):
             Df = study.residual(_merge(base, cand.name, val))
             D_after[folds == f] = Df[folds == f]
+        ci = _bias_allowed(cand, study.survey, allv, ci, fit_info, voters, D_after, w)
         before = st.tree_loss(current_D, w)
         after = st.tree_loss(D_after, w)
         p = st.paired_improvement(before, after)

@@ -351,7 +351,9 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         than three crossed and the least-squares grid minimum was taken instead.
     spread : dict, only with ``detail``
         ``scale_factor`` (S), ``systematic_sd`` (the SD beyond sampling; on the log scale for
-        ``log``) and ``sampling_var`` (observable index → ``v_j``); empty without votes.
+        ``log``), ``sampling_var`` (observable index → ``v_j``) and ``bias_shift`` (observable
+        index → how far its crossing moves, on the same scale, for a bias of one across-tree SD
+        in its residual; see :func:`bias_allowance`); empty without votes.
     """
     x = np.asarray(x, float)
     order = np.argsort(x)
@@ -359,13 +361,14 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
     with np.errstate(invalid="ignore", divide="ignore"):
         sub = [D if rows is None else D[rows] for D in Ds]
         M = np.array([np.nanmean(D, axis=0) for D in sub])[order]
-        S = np.array([np.nanstd(D, axis=0, ddof=1) / np.sqrt(np.maximum(np.sum(np.isfinite(D), axis=0), 1))
-                      for D in sub])[order] if detail else None  # standard error of each mean residual
+        SD = np.array([np.nanstd(D, axis=0, ddof=1) for D in sub])[order] if detail else None  # across trees
+        S = (SD / np.sqrt(np.maximum(np.array([np.sum(np.isfinite(D), axis=0) for D in sub])[order], 1))
+             if detail else None)  # standard error of each mean residual
     loss = [bias_loss(D, w, rows) for D in Ds]
     x_ls = grid_minimum(np.asarray(x), np.asarray(loss)[order], lo, hi, log)
     logt = log and bool(np.all(x > 0))
     t = np.log(x) if logt else x
-    votes, var = {}, {}
+    votes, var, shift = {}, {}, {}
     for j in range(M.shape[1]):
         m = M[:, j]
         if w[j] <= 0 or not np.isfinite(m).all():
@@ -379,14 +382,16 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
                 cand.append((x[i], np.inf))
                 continue
             f = m[i] / (m[i] - m[i + 1])
-            v = np.inf
+            v = b = np.inf
             if detail:
-                se = (1 - f) * S[i, j] + f * S[i + 1, j]
-                v = float((se * (t[i + 1] - t[i]) / (m[i + 1] - m[i])) ** 2) if np.isfinite(se) else np.inf
-            cand.append((x[i] + (x[i + 1] - x[i]) * f, v))
-        r, v = min(cand, key=lambda c: abs(c[0] - x_ls))
+                dtdm = abs((t[i + 1] - t[i]) / (m[i + 1] - m[i]))
+                se, sd = (1 - f) * S[i, j] + f * S[i + 1, j], (1 - f) * SD[i, j] + f * SD[i + 1, j]
+                v = float((se * dtdm) ** 2) if np.isfinite(se) else np.inf
+                b = float(sd * dtdm) if np.isfinite(sd) else np.inf
+            cand.append((x[i] + (x[i + 1] - x[i]) * f, v, b))
+        r, v, b = min(cand, key=lambda c: abs(c[0] - x_ls))
         votes[j] = (float(r), float(w[j] * float(m.max() - m.min()) ** 2))
-        var[j] = v
+        var[j], shift[j] = v, b
     if len(votes) < 3:
         return (x_ls, {}, {}) if detail else (x_ls, {})
     roots = np.array([r for r, _ in votes.values()])
@@ -406,4 +411,37 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         scale = float(np.sqrt(Q / (ok.sum() - 1)))
         sys_sd = float(np.sqrt(max(0.0, scale ** 2 - 1.0) / np.sum(a)))
     return value, votes, {"scale_factor": scale, "systematic_sd": sys_sd,
-                          "sampling_var": {j: float(vj) for j, vj in zip(votes, v)}}
+                          "sampling_var": {j: float(vj) for j, vj in zip(votes, v)},
+                          "bias_shift": {j: shift[j] for j in votes}}
+
+
+def bias_scale(D: np.ndarray, cols) -> float:
+    """The typical bias of an observable, in units of its across-tree SD, from residuals ``D``.
+
+    ``β² = mean_k (z_k² − 1 / n_k)`` over the columns ``cols``, ``z_k`` being column k's mean
+    residual over its across-tree SD and ``1 / n_k`` what sampling alone gives ``z_k²`` on
+    average (``n_k`` trees); 0 when sampling accounts for it all, NaN without a usable column.
+    Fed with the residuals a fit leaves in the observables it did not use, this measures the
+    systematic errors (the voxel reconstruction's) that the fit's own observables carry too but
+    cannot show, having been fitted to them.
+    """
+    z2 = []
+    for k in cols:
+        d = D[:, k]
+        d = d[np.isfinite(d)]
+        if len(d) < 3:
+            continue
+        sd = float(d.std(ddof=1))
+        if sd > 0:
+            z2.append((float(d.mean()) / sd) ** 2 - 1.0 / len(d))
+    return float(np.sqrt(max(0.0, float(np.mean(z2))))) if z2 else float("nan")
+
+
+def bias_allowance(beta: float, shares: dict, shift: dict) -> float:
+    """The SD an estimate gets when each of its voters carries an independent bias of ``beta``
+    across-tree SDs: ``β · √(Σ a_j² s_j²)``, ``a_j`` the voters' weight shares and ``s_j`` their
+    crossings' shift per across-tree SD (``bias_shift`` of :func:`crossing_votes`). A fit that
+    rests on one observable gets that observable's whole bias; one spread over many gets less.
+    """
+    terms = [(shares[j] * shift[j]) ** 2 for j in shares if j in shift and np.isfinite(shift[j])]
+    return float(beta * np.sqrt(sum(terms))) if terms and np.isfinite(beta) else 0.0
