@@ -1346,6 +1346,26 @@ def test_the_bias_allowance_covers_a_fit_whose_voters_share_one_bias():
     assert out[0.0][1] >= 0.9 and out[0.0][2] < 1.6   # no biases: the CI stays near the sampling one
 
 
+def test_the_diagnosis_widens_a_fits_ci_by_the_larger_of_disagreement_and_bias_allowance(monkeypatch):
+    """In the stand-in (range noise hidden beside the reconstruction error), the report's CI is
+    the bootstrap over trees widened by the larger of the votes' disagreement and the bias
+    allowance, whose β comes from the observables that did not vote, and the allowance is what
+    widens it here."""
+    from vlsforest.diagnose import core
+
+    rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.06}}, seed=1), seed=1)
+    eff = next(e for e in rep["effects"] if e["name"] == "range_noise")
+    b = eff["between_observables"]["sigma_m"]
+    voted = set(eff["votes"]["sigma_m"])
+    assert b["n_unused"] > 0 and b["n_unused"] + len(voted) <= len(FEATURES)
+    assert 0.2 < b["bias_scale"] < 3 and b["bias_sd"] > b["systematic_sd"] > 0
+    lo, hi = lib.CANDIDATES["range_noise"].bounds(_LinearStudy.survey)["sigma_m"]
+    want = core._widened(eff["ci95_trees"]["sigma_m"], eff["parameters"]["sigma_m"], b["bias_sd"], False, lo, hi)
+    assert eff["ci95"]["sigma_m"] == pytest.approx(want)
+    assert eff["ci95"]["sigma_m"][0] < eff["ci95_trees"]["sigma_m"][0] and \
+        eff["ci95"]["sigma_m"][1] > eff["ci95_trees"]["sigma_m"][1]
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(monkeypatch, seed):
     """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the
