@@ -621,21 +621,19 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
     """Grid fit of a candidate (coordinate search over its searched parameters, from the values
     ``base`` simulates).
 
-    Returns the all-tree and per-fold values (as :meth:`Candidate.apply` takes them); the 95 % CI
-    of the first searched parameter: the bootstrap over trees widened, in quadrature, by the SD
-    that the observables' systematic errors give the estimate (their disagreement beyond
-    sampling, :func:`.stats.crossing_votes`); and a mapping with ``votes`` (per searched
+    Returns the all-tree and per-fold values (as :meth:`Candidate.apply` takes them) and a
+    mapping with ``votes`` (per searched
     parameter: observable → its crossing and its share of the weight; empty where the
     least-squares grid minimum was taken), ``rests_on`` (for a parameter whose fit rests on one
     observable, more than :data:`DOMINANT_VOTE` of the weight: that observable, its share and
     the value fitted without it), ``between_observables`` (per parameter: the crossings'
     ``scale_factor`` S — their disagreement beyond sampling, ≈ 1 when they agree — and the
     estimate's ``systematic_sd`` beyond sampling, on the log scale where ``log_scale``; the
-    bias allowance's entries are added by :func:`_bias_allowed`), ``ci95_trees`` (the bootstrap
-    CI alone), ``curve`` (the first parameter's grid and residuals, for
-    :func:`_realisation_scatter`) and ``voters`` (the first parameter's voters' weight shares and
-    bias shifts and every parameter's voters, for :func:`_bias_allowed`); the last two are not
-    for the report."""
+    bias allowance's entries are added by :func:`_systematic_ci`), ``ci95_trees`` (the first
+    searched parameter's 95 % CI from the bootstrap over trees; :func:`_systematic_ci` widens
+    it), ``curve`` (the first parameter's grid and residuals, for :func:`_realisation_scatter`)
+    and ``voters`` (the first parameter's voters' weight shares and bias shifts and every
+    parameter's voters, for :func:`_systematic_ci`); the last two are not for the report."""
     start = cand.current(study.survey, base)
     cur = cand.coords(start)
     bounds = cand.bounds(study.survey)
@@ -660,8 +658,9 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         allv[par.name], v, spread[par.name] = st.crossing_votes(g, Ds, w, lo, hi, lg, detail=True)
         total = sum(q for _, q in v.values())
         used |= set(v)
-        if par is cand.params[0]:  # the voters' weight shares and bias shifts, for the bias allowance
-            spread[par.name]["shares"] = {j: q / total for j, (_, q) in v.items()} if total > 0 else {}
+        if par is cand.params[0]:  # its voters' weight shares and bias shifts, for the bias allowance
+            voters = {"shares": {j: q / total for j, (_, q) in v.items()} if total > 0 else {},
+                      "bias_shift": spread[par.name].get("bias_shift", {})}
         votes[par.name] = {FEATURES[j]: {"crossing": r, "weight_share": q / total if total > 0 else 0.0}
                            for j, (r, q) in sorted(v.items(), key=lambda kv: -kv[1][1])}
         top = max(v, key=lambda j: v[j][1]) if total > 0 else None
@@ -686,28 +685,27 @@ def _fit(study: _Study, base: dict, cand: lib.Candidate, w: np.ndarray, folds: n
         rows = rng.integers(0, n, n)
         boot.append(st.robust_fit(g, Ds, w, lo, hi, par.log and lo > 0, rows=rows))
     ci_trees = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
-    # the observables' systematic errors (their disagreement beyond sampling) widen it, in quadrature
-    ci = _widened(ci_trees, allv[par.name], spread[par.name].get("systematic_sd", 0.0), par.log and lo > 0, lo, hi)
     between = {q.name: {"scale_factor": spread[q.name]["scale_factor"],
                         "systematic_sd": spread[q.name]["systematic_sd"],
                         "log_scale": bool(q.log and bounds[q.name][0] > 0)}
                for q in cand.params if spread.get(q.name)}
-    sp = spread.get(par.name) or {}
-    voters = {"shares": sp.get("shares", {}), "bias_shift": sp.get("bias_shift", {}), "used": used}
-    return (cand.values(start, allv), [cand.values(start, v) for v in per_fold], ci,
+    return (cand.values(start, allv), [cand.values(start, v) for v in per_fold],
             {"votes": votes, "rests_on": rests_on, "between_observables": between,
-             "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name], "voters": voters})
+             "ci95_trees": {par.name: ci_trees}, "curve": curves[par.name], "voters": dict(voters, used=used)})
 
 
-def _bias_allowed(cand: lib.Candidate, survey: dict, allv: dict, ci: list, fit_info: dict, voters: dict,
-                  D_left: np.ndarray, w: np.ndarray) -> list:
-    """``ci`` with the bias allowance (:func:`.stats.bias_allowance`) where it exceeds the votes'
-    disagreement: the voters are taken to carry biases as large, in across-tree SDs, as those the
-    fit leaves in the observables it did not use (``D_left``, the held-out residuals; β from
-    :func:`.stats.bias_scale`). The disagreement sees such biases only where several voters of
-    comparable precision disagree; a fit that rests on one observable hides its bias from it.
-    Both estimate the same SD, so the larger one is used. Records ``bias_scale`` and ``bias_sd``
-    in ``fit_info["between_observables"]``."""
+def _systematic_ci(cand: lib.Candidate, survey: dict, allv: dict, fit_info: dict, voters: dict,
+                   D_left: np.ndarray, w: np.ndarray) -> list:
+    """The first searched parameter's 95 % CI: the bootstrap over trees (``ci95_trees``) widened,
+    in quadrature, by the SD the voters' systematic errors give the estimate — the larger of two
+    estimates of it. One is the votes' disagreement beyond sampling (``systematic_sd``,
+    :func:`.stats.crossing_votes`), which sees such errors only where several voters of
+    comparable precision disagree. The other is the bias allowance
+    (:func:`.stats.bias_allowance`): the voters are taken to carry biases as large, in
+    across-tree SDs, as those the fit leaves in the observables it did not use (``D_left``, the
+    held-out residuals; β from :func:`.stats.bias_scale`), which also covers a fit that rests on
+    one observable. Records ``bias_scale``, ``bias_sd`` and ``n_unused`` in
+    ``fit_info["between_observables"]``."""
     par = cand.params[0]
     lo, hi = cand.bounds(survey)[par.name]
     log = bool(par.log and lo > 0)
@@ -717,9 +715,8 @@ def _bias_allowed(cand: lib.Candidate, survey: dict, allv: dict, ci: list, fit_i
     row = fit_info["between_observables"].setdefault(par.name, {"scale_factor": None, "systematic_sd": 0.0,
                                                                  "log_scale": log})
     row.update(bias_scale=beta, bias_sd=sd, n_unused=len(rest))
-    if not sd > row["systematic_sd"]:
-        return ci
-    return _widened(fit_info["ci95_trees"][par.name], cand.coords(allv)[par.name], sd, log, lo, hi)
+    return _widened(fit_info["ci95_trees"][par.name], cand.coords(allv)[par.name], max(sd, row["systematic_sd"]),
+                    log, lo, hi)
 
 
 def _widened(ci: list, x: float, sd: float, log: bool, lo: float, hi: float) -> list:
@@ -848,14 +845,14 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
         # fit on the observables the candidate informs: weights scaled by the squared
         # signal-to-noise of its signature (reconstruction errors elsewhere do not pull the fit)
         wfit = w * st.information_weights(sigs[cand.name], current_D)
-        allv, per_fold, ci, fit_info = _fit(study, base, cand, wfit, folds, setup.grid, rng)
+        allv, per_fold, fit_info = _fit(study, base, cand, wfit, folds, setup.grid, rng)
         curve, voters = fit_info.pop("curve"), fit_info.pop("voters")
         # held-out: each fold simulated at the value fitted without it
         D_after = np.full_like(current_D, np.nan)
         for f, val in enumerate(per_fold):
             Df = study.residual(_merge(base, cand.name, val))
             D_after[folds == f] = Df[folds == f]
-        ci = _bias_allowed(cand, study.survey, allv, ci, fit_info, voters, D_after, w)
+        ci = _systematic_ci(cand, study.survey, allv, fit_info, voters, D_after, w)
         before = st.tree_loss(current_D, w)
         after = st.tree_loss(D_after, w)
         p = st.paired_improvement(before, after)
