@@ -111,6 +111,24 @@ def test_robust_fit_ignores_observables_that_cannot_match():
         x, [st.bias_loss(D[:, [0, 1, 6]], np.ones(3)) for D in Ds], 0, 10))
 
 
+
+def test_crossing_votes_take_an_observable_that_is_exactly_zero_over_a_stretch():
+    """An observable whose mean residual is exactly 0 at adjacent grid values (a discrete one, or
+    one the parameter moves only beyond a point) votes for the grid value nearest the estimate
+    in that stretch, with infinite sampling variance, beside the observables that cross."""
+    x = np.linspace(0, 10, 7)
+    slopes = np.linspace(0.5, 2, 6)
+    flat = np.array([2.0, 0.0, 0.0, 0.0, -1.0, -2.0, -3.0])  # 0 from x[1] to x[3]
+    Ds = [np.tile(np.r_[-(v - 3.0) * slopes, flat[i]], (4, 1)) for i, v in enumerate(x)]
+    for detail in (False, True):
+        value, votes, *spread = st.crossing_votes(x, Ds, np.ones(7), 0, 10, detail=detail)
+        assert value == pytest.approx(3.0)
+        assert votes[6][0] == pytest.approx(x[2])  # in the zero stretch, nearest the estimate
+        assert [votes[j][0] for j in range(6)] == pytest.approx([3.0] * 6)
+        if detail:
+            assert spread[0]["sampling_var"][6] == np.inf and spread[0]["bias_shift"][6] == np.inf
+            assert np.isfinite(spread[0]["systematic_sd"])
+
 def test_amplitude_test_and_global_test_detect_a_shift_not_noise():
     rng = np.random.default_rng(2)
     J = np.r_[np.ones(5), np.zeros(5)]
