@@ -773,6 +773,9 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
     proc = snakemake_cli("-n", "-p", "--configfile", path, cwd=tmp_path)
     assert proc.returncode == 0 and '"beam_sample_quality": 5' in proc.stdout + proc.stderr, proc.stdout[-3000:]
     assert '"margin": 2.5' in proc.stdout + proc.stderr
+    # resources a cluster can hold it to (attempt 1; doubled on a retry): 16 GB, 90 min
+    job = (proc.stdout + proc.stderr).split("rule diagnose:")[1].split("\n\n")[0]
+    assert "mem_mb=16000" in job and "runtime=90" in job, job
     # without region_margin_m the sim-config names no margin: the library's default applies
     del fine["diagnosis"]["region_margin_m"]
     path.write_text(yaml.safe_dump(fine))

@@ -332,6 +332,18 @@ def simulate_runtime(wildcards, attempt):
     return 120 * attempt
 
 
+def diagnose_mem_mb(wildcards, attempt):
+    """Memory of the diagnosis: one plot's trace held while the next is made (session 29's
+    default study: largest process 10.8 GB, PSS of the job 10.1 GB), doubled per retry."""
+    return 16000 * attempt
+
+
+def diagnose_runtime(wildcards, attempt):
+    """Wall time (minutes) of the diagnosis (default study: 22–27 min alone, 34 min beside the
+    simulations), doubled per retry."""
+    return 90 * attempt
+
+
 # ---------------------------------------------------------------------------------------------
 # Diagnosis (workflow/rules/diagnose.smk)
 # ---------------------------------------------------------------------------------------------

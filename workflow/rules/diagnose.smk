@@ -19,9 +19,9 @@ rule diagnose:
         "../../envs/vlsforest.yaml"
     threads: 2
     resources:
-        mem_mb=12000,
+        mem_mb=diagnose_mem_mb,
         disk_mb=16000,  # a stage's traces wait beside the report for the next stage (≤ 4 × ≈ 3.5 GB on the default forest)
-        runtime=60,
+        runtime=diagnose_runtime,
     params:
         setup=diagnosis_param,
         library=DIAGNOSE_HASH,
