@@ -111,7 +111,6 @@ def test_robust_fit_ignores_observables_that_cannot_match():
         x, [st.bias_loss(D[:, [0, 1, 6]], np.ones(3)) for D in Ds], 0, 10))
 
 
-
 def test_crossing_votes_take_an_observable_that_is_exactly_zero_over_a_stretch():
     """An observable whose mean residual is exactly 0 at adjacent grid values (a discrete one, or
     one the parameter moves only beyond a point) votes for the grid value nearest the estimate
@@ -128,6 +127,7 @@ def test_crossing_votes_take_an_observable_that_is_exactly_zero_over_a_stretch()
         if detail:
             assert spread[0]["sampling_var"][6] == np.inf and spread[0]["bias_shift"][6] == np.inf
             assert np.isfinite(spread[0]["systematic_sd"])
+
 
 def test_amplitude_test_and_global_test_detect_a_shift_not_noise():
     rng = np.random.default_rng(2)

@@ -379,7 +379,7 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         cand = []
         for i in cross:
             if m[i] == m[i + 1]:
-                cand.append((x[i], np.inf, np.inf))  # flat at zero: no slope, no variance
+                cand.append((x[i], np.inf, np.inf))  # flat at zero: no slope, so no finite variance or shift
                 continue
             f = m[i] / (m[i] - m[i + 1])
             v = b = np.inf
