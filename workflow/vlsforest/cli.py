@@ -13,6 +13,7 @@ import importlib
 import sys
 
 from vlsforest import __version__
+from vlsforest._memory import keep_freed_memory
 from vlsforest.errors import VlsforestError
 
 #: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
@@ -57,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     only = argv[0] if argv and argv[0] in COMMANDS else None
     parser = build_parser(only)
     args = parser.parse_args(argv)
+    keep_freed_memory()  # less system time re-touching freed memory (vlsforest._memory)
     try:
         rc = args.func(args)
     except VlsforestError as exc:

@@ -1,0 +1,76 @@
+"""The command line keeps freed memory in its process (vlsforest._memory)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from vlsforest._memory import SWITCH, keep_freed_memory
+
+WORKFLOW = Path(__file__).resolve().parents[1] / "workflow"
+
+# allocates and frees 400 MB in 4 arrays, then prints the resident MB and the THP flag
+PROBE = r"""
+import sys, numpy as np
+if sys.argv[1] == "keep":
+    from vlsforest._memory import keep_freed_memory
+    assert keep_freed_memory()
+base = int(open("/proc/self/statm").read().split()[1])
+arrays = [np.ones(100_000_000, np.uint8) for _ in range(4)]
+del arrays
+rss = (int(open("/proc/self/statm").read().split()[1]) - base) * 4096 / 1e6
+thp = [l.split()[1] for l in open("/proc/self/status") if l.startswith("THP_enabled")]
+print(round(rss), thp[0] if thp else "?")
+"""
+
+linux_glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or os.confstr("CS_GNU_LIBC_VERSION") is None,
+                                 reason="glibc on Linux only")
+
+
+def _clean_env() -> dict:
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("MALLOC_") and k not in ("GLIBC_TUNABLES", SWITCH)}
+    env["PYTHONPATH"] = str(WORKFLOW)
+    return env
+
+
+def _probe(mode: str) -> tuple[float, str]:
+    env = _clean_env()
+    out = subprocess.run([sys.executable, "-c", PROBE, mode], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    return float(out[0]), out[1]
+
+
+@linux_glibc
+def test_freed_arrays_stay_in_the_process_and_pages_are_small():
+    kept, thp_kept = _probe("keep")
+    freed, thp_default = _probe("default")
+    assert kept > 350  # the 400 MB freed stay resident for the next allocation
+    assert freed < 50  # glibc's default: each > 32 MB array went back to the kernel
+    if thp_kept != "?":
+        assert thp_kept == "0" and thp_default == "1"
+
+
+def test_the_switch_and_the_users_own_malloc_settings_are_respected():
+    env = {SWITCH: "system"}
+    assert keep_freed_memory(env) is False and env == {SWITCH: "system"}
+    for own in ({"MALLOC_ARENA_MAX": "2"}, {"GLIBC_TUNABLES": "glibc.malloc.mmap_max=4"}):
+        env = dict(own)
+        assert keep_freed_memory(env) is False and env == own
+
+
+@linux_glibc
+def test_a_child_process_inherits_the_settings():
+    """The synthesis' spawned workers are new interpreters: they must keep freed memory too."""
+    code = ("import subprocess, sys; from vlsforest._memory import keep_freed_memory; "
+            "assert keep_freed_memory(); "
+            "subprocess.run([sys.executable, '-c', sys.argv[1], 'default'], check=True)")
+    env = _clean_env()
+    out = subprocess.run([sys.executable, "-c", code, PROBE], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert float(out[0]) > 350
+    assert out[1] in ("0", "?")
