@@ -13,9 +13,13 @@ from vlsforest._memory import SWITCH, keep_freed_memory
 
 WORKFLOW = Path(__file__).resolve().parents[1] / "workflow"
 
-# allocates and frees 400 MB in 4 arrays, then prints the resident MB and the THP flag
+# allocates and frees 400 MB in 4 arrays, then prints the resident MB and the THP flag. "keep"
+# and "default" first clear the THP flag, which a test process may have inherited (a test that
+# ran `vlsforest` in-process set it); "inherited" runs as it was started.
 PROBE = r"""
-import sys, numpy as np
+import ctypes, sys, numpy as np
+if sys.argv[1] != "inherited":
+    ctypes.CDLL(None).prctl(41, 0, 0, 0, 0)  # PR_SET_THP_DISABLE off
 if sys.argv[1] == "keep":
     from vlsforest._memory import keep_freed_memory
     assert keep_freed_memory()
@@ -66,9 +70,9 @@ def test_the_switch_and_the_users_own_malloc_settings_are_respected():
 @linux_glibc
 def test_a_child_process_inherits_the_settings():
     """The synthesis' spawned workers are new interpreters: they must keep freed memory too."""
-    code = ("import subprocess, sys; from vlsforest._memory import keep_freed_memory; "
-            "assert keep_freed_memory(); "
-            "subprocess.run([sys.executable, '-c', sys.argv[1], 'default'], check=True)")
+    code = ("import ctypes, subprocess, sys; from vlsforest._memory import keep_freed_memory; "
+            "ctypes.CDLL(None).prctl(41, 0, 0, 0, 0); assert keep_freed_memory(); "
+            "subprocess.run([sys.executable, '-c', sys.argv[1], 'inherited'], check=True)")
     env = _clean_env()
     out = subprocess.run([sys.executable, "-c", code, PROBE], env=env, capture_output=True, text=True,
                          check=True).stdout.split()
