@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
@@ -27,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-WORKFLOW = Path(__file__).resolve().parents[1] / "workflow"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "workflow"))
+
+from vlsforest._memory import keep_freed_memory, plain_environ  # noqa: E402
 
 
 def _page_reporting() -> str:
@@ -41,12 +42,8 @@ def _page_reporting() -> str:
 
 def _rounds(gb: float, rounds: int, pause: float, keep: bool) -> list[tuple[float, float]]:
     """Run the rounds in this process; return (wall, system) seconds per round."""
-    if keep:
-        sys.path.insert(0, str(WORKFLOW))
-        from vlsforest._memory import keep_freed_memory
-
-        if not keep_freed_memory():
-            raise SystemExit("keep_freed_memory did not apply (not glibc, or MALLOC_* set)")
+    if keep and not keep_freed_memory():
+        raise SystemExit("keep_freed_memory did not apply (not glibc, or MALLOC_* set)")
     chunk = int(5e7)
     src = np.ones(chunk * 10, np.uint8)  # 0.5 GB source, touched once here
     parts = [src[k * chunk:(k + 1) * chunk] for k in range(10)]
@@ -75,7 +72,7 @@ def main(argv=None) -> int:
         print(json.dumps(_rounds(a.gb, a.rounds, a.pause, a.child == "keep")))
         return 0
     print(_page_reporting())
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    env = plain_environ()
     res = {}
     for mode in ("default", "keep"):
         proc = subprocess.run([sys.executable, __file__, "--child", mode, "--gb", str(a.gb), "--rounds",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from vlsforest._memory import SWITCH, keep_freed_memory
+from vlsforest._memory import SWITCH, keep_freed_memory, plain_environ
 
 WORKFLOW = Path(__file__).resolve().parents[1] / "workflow"
 
@@ -36,8 +36,7 @@ linux_glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or os.conf
 
 
 def _clean_env() -> dict:
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith("MALLOC_") and k not in ("GLIBC_TUNABLES", SWITCH)}
+    env = plain_environ()
     env["PYTHONPATH"] = str(WORKFLOW)
     return env
 

@@ -30,6 +30,19 @@ _PR_SET_THP_DISABLE = 41  # prctl option (linux/prctl.h); inherited by children,
 CHILD_ENV = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 
 
+def _own_malloc_setting(name: str) -> bool:
+    """Whether an environment variable is a malloc setting of the user's (or a parent's)."""
+    return name == "GLIBC_TUNABLES" or name.startswith("MALLOC_")
+
+
+def plain_environ(environ: dict | None = None) -> dict:
+    """A copy of ``environ`` (default ``os.environ``) without malloc settings and without
+    :data:`SWITCH`: a child started with it begins with the system's defaults and may apply
+    :func:`keep_freed_memory` itself (the benchmark's and the tests' baseline)."""
+    env = os.environ if environ is None else environ
+    return {k: v for k, v in env.items() if not _own_malloc_setting(k) and k != SWITCH}
+
+
 def keep_freed_memory(environ: dict | None = None) -> bool:
     """Keep freed heap memory in this process and its children, and use small pages.
 
@@ -47,7 +60,7 @@ def keep_freed_memory(environ: dict | None = None) -> bool:
     env = os.environ if environ is None else environ
     if env.get(SWITCH, "").strip().lower() == "system":
         return False
-    if "GLIBC_TUNABLES" in env or any(k.startswith("MALLOC_") for k in env):
+    if any(_own_malloc_setting(k) for k in env):
         return False
     try:
         libc = ctypes.CDLL(None, use_errno=True)
