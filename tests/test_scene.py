@@ -83,8 +83,9 @@ def test_planned_routing_weighs_embree_build_against_rays(monkeypatch):
     lo, hi = sc.bounds()
     o, d = _rays(3000, np.random.default_rng(6), lo, hi)
     t_e, p_e, _ = sc.trace(o, d)
-    # break-even: rays · 0.16 µs · (0.25/0.1)^0.6 = 1.25 · 10 µs · n
-    even = 1.25 * 10e-6 * n / (0.16e-6 * 2.5 ** 0.6)
+    # break-even: rays · 0.16 µs · (0.25/0.1)^0.6 = 1.25 · 6 µs · n
+    assert Scene._EMBREE_BUILD_S_PER_CUBE == 6e-6 and Scene._EMBREE_SAVES_S_PER_RAY == 0.16e-6
+    even = 1.25 * 6e-6 * n / (0.16e-6 * 2.5 ** 0.6)
     sc.plan_for_rays(0.9 * even)
     assert sc._routing() == [False] and len(sc.grids) == 1
     t_g, p_g, _ = sc.trace(o, d)

@@ -31,6 +31,10 @@ Voxel back-ends (top-level ``voxel_backend``): ``auto`` (default) gives voxel se
 300 000 cubes to Embree as 12 triangles per cube (fastest for small models) and traces
 larger ones with a sparse two-level grid and a 3-D DDA (no triangles, so tens of millions of
 voxels fit in memory); ``embree`` and ``grid`` force one back-end. Both give the same hits.
+
+Embree's robust traversal (top-level ``embree_robust``, default true): off, leaf-level scenes
+trace ≈ 16 % faster and many more rays that meet a shared edge or vertex slip through the surface
+(:mod:`vlsforest.sim._embree`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ import numpy as np
 import yaml
 
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
+from vlsforest.sim import _embree
 from vlsforest.sim._voxelgrid import VoxelGrid
 from vlsforest.sim.waveform import hit_cos32
 
@@ -119,31 +124,38 @@ class Scene:
 
     #: with ``voxel_backend="auto"``, the voxel sets of a lattice go to Embree as 12 triangles
     #: per cube when the lattice holds up to this many cubes in all, else all of them to one
-    #: sparse grid. Embree pays ≈ 15 µs per cube to build (embreex copies the buffers
-    #: element by element) and then traces faster; the grid builds in ≈ 0.5 µs per cube, and
-    #: one grid per lattice beats Embree plus a grid for the same crowns (measured on the
-    #: default forest's P1, ULS: 0.02 m crowns 17 s → 2.4 s to load, the whole simulation
-    #: ≈ 10 % faster; 0.25 m crowns, 145 k cubes, stay in Embree, where ULS traces ≈ 1.7×
-    #: faster than in the grid).
+    #: sparse grid. Embree pays ≈ 6 µs per cube to build (≈ 16 µs until session 31, when
+    #: embreex copied the buffers element by element) and then traces faster; the grid builds
+    #: in ≈ 0.5 µs per cube, and one grid per lattice beats Embree plus a grid for the same
+    #: crowns (measured on the default forest's P1, ULS: 0.02 m crowns 17 s → 2.4 s to load,
+    #: the whole simulation ≈ 10 % faster; 0.25 m crowns, 145 k cubes, stay in Embree, where
+    #: ULS traces ≈ 1.7× faster than in the grid).
     EMBREE_VOXEL_LIMIT = 300_000
     #: when the number of rays to trace is known (:meth:`plan_for_rays`; the simulator estimates
-    #: it from the survey before tracing), ``auto`` weighs instead the Embree build (≈ 10 µs per
-    #: cube) against what Embree saves per ray over the grid (≈ 0.16 µs at 0.25 m cells, more in
-    #: finer lattices, where the grid walks more cells: ≈ 0.16 µs · (0.25 m / h)^0.6), with a
-    #: margin of 1.25 for the build, and never sends more than :attr:`EMBREE_VOXEL_MAX` cubes of
-    #: one lattice to Embree (≈ 1 kB each; 1.7 M cubes gave a 3.8 GB peak). Measured on the default
-    #: forest's P1 (session 13, 2 workers): ULS (92 M sub-rays) fixed 0.25 m 30.0 → 18.9 s,
-    #: scaled 35.6 → 20.5 s, fixed 0.10 m 41.7 → 28.0 s, fixed 0.05 m 55.8 → 36.1 s in Embree;
-    #: ALS (4.8 M sub-rays) scaled 3.5 s in the grid vs 5.6 s, fixed 0.05 m 4.9 vs 19.7 s.
+    #: it from the survey before tracing), ``auto`` weighs instead the Embree build (≈ 6 µs per
+    #: cube, ``benchmarks/bench_embree_build.py``) against what Embree saves per ray over the
+    #: grid (≈ 0.16 µs at 0.25 m cells, more in finer lattices, where the grid walks more cells:
+    #: ≈ 0.16 µs · (0.25 m / h)^0.6), with a margin of 1.25 for the build, and never sends more
+    #: than :attr:`EMBREE_VOXEL_MAX` cubes of one lattice to Embree (≈ 1 kB each; 1.7 M cubes
+    #: gave a 3.8 GB peak). Measured on the default forest's P1 (session 13, 2 workers): ULS
+    #: (92 M sub-rays) fixed 0.25 m 30.0 → 18.9 s, scaled 35.6 → 20.5 s, fixed 0.10 m 41.7 →
+    #: 28.0 s, fixed 0.05 m 55.8 → 36.1 s in Embree; ALS (4.8 M sub-rays) scaled 3.5 s in the
+    #: grid vs 5.6 s, fixed 0.05 m 4.9 vs 19.7 s.
     EMBREE_VOXEL_MAX = 2_000_000
-    _EMBREE_BUILD_S_PER_CUBE = 10e-6
+    _EMBREE_BUILD_S_PER_CUBE = 6e-6
     _EMBREE_SAVES_S_PER_RAY = 0.16e-6
     _EMBREE_BUILD_MARGIN = 1.25
 
-    def __init__(self, voxel_backend: str = "auto"):
+    def __init__(self, voxel_backend: str = "auto", embree_robust: bool | None = None):
         if voxel_backend not in ("auto", "embree", "grid"):
             raise ConfigError(f"voxel_backend must be 'auto', 'embree' or 'grid', got {voxel_backend!r}")
+        if embree_robust is None:
+            embree_robust = _embree.ROBUST_DEFAULT
+        if not isinstance(embree_robust, (bool, np.bool_)):
+            raise ConfigError(f"embree_robust must be true or false, got {embree_robust!r}")
         self.voxel_backend = voxel_backend
+        #: Embree's robust traversal (see :mod:`vlsforest.sim._embree`)
+        self.embree_robust = bool(embree_robust)
         self.parts: list[ScenePart] = []
         self._planes: list[_Plane] = []
         self._meshes: list[_Mesh] = []
@@ -243,13 +255,13 @@ class Scene:
         """Build a scene from a parsed SCENE.yaml mapping (``voxel_transform``: see :meth:`from_yaml`)."""
         if not isinstance(cfg, dict) or "parts" not in cfg:
             raise ConfigError(f"{source}: needs a top-level 'parts:' list")
-        extra = set(cfg) - {"parts", "voxel_backend", "name"}
+        extra = set(cfg) - {"parts", "voxel_backend", "embree_robust", "name"}
         if extra:
             raise ConfigError(f"{source}: unknown top-level key(s) {sorted(extra)}")
         parts = cfg["parts"]
         if not isinstance(parts, list) or not parts:
             raise ConfigError(f"{source}: 'parts' must be a non-empty list")
-        scene = cls(voxel_backend=cfg.get("voxel_backend", "auto"))
+        scene = cls(voxel_backend=cfg.get("voxel_backend", "auto"), embree_robust=cfg.get("embree_robust"))
         base = Path(base_dir)
         for n, p in enumerate(parts):
             _add_part_from_dict(scene, p, base, f"{source}: parts[{n}]", voxel_transform)
@@ -373,29 +385,26 @@ class Scene:
         return int(sum(len(m.faces) for m in self._meshes))
 
     def _build_embree(self):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
         lo, hi = self.bounds()
         self._shift = np.where(np.isfinite(lo + hi), 0.5 * (lo + hi), 0.0)
-        sc = rtcore_scene.EmbreeScene()
+        sc = _embree.new_scene(self.embree_robust)
         parts = []
         labels = []
         for m in self._meshes:
-            TriangleMesh(sc, (m.vertices - self._shift).astype(np.float32), m.faces)
+            _embree.add_triangles(sc, (m.vertices - self._shift).astype(np.float32), m.faces)
             parts.append(m.part)
             labels.append(m.labels)
         for p in self._planes:  # Embree is called anyway: two triangles beat a numpy pass
             x0, y0, x1, y1 = p.extent
             v = np.array([[x0, y0, p.z], [x1, y0, p.z], [x1, y1, p.z], [x0, y1, p.z]]) - self._shift
-            TriangleMesh(sc, v.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
+            _embree.add_triangles(sc, v.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
             parts.append(p.part)
             labels.append(None)
         for v, in_embree in zip(self._voxelsets, self._routing()):
             if in_embree:
                 verts, faces = _cube_triangles(v)
                 if len(faces):
-                    TriangleMesh(sc, (verts - self._shift).astype(np.float32), faces)
+                    _embree.add_triangles(sc, (verts - self._shift).astype(np.float32), faces)
                     parts.append(v.part)
                     labels.append(None)
         self._embree = sc
