@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from vlsforest._memory import SWITCH, keep_freed_memory, plain_environ
+from vlsforest.errors import ConfigError
 
 WORKFLOW = Path(__file__).resolve().parents[1] / "workflow"
 
@@ -77,3 +78,20 @@ def test_a_child_process_inherits_the_settings():
                          check=True).stdout.split()
     assert float(out[0]) > 350
     assert out[1] in ("0", "?")
+
+
+def test_a_misspelt_switch_is_one_clear_error(tmp_path):
+    env = {SWITCH: "sytem"}
+    with pytest.raises(ConfigError, match="VLSFOREST_MEMORY must be 'system'.*'sytem'"):
+        keep_freed_memory(env)
+    assert env == {SWITCH: "sytem"}  # nothing applied
+    missing = tmp_path / "missing.csv"
+    cmd = [sys.executable, "-m", "vlsforest.cli", "stats", "--metrics", str(missing), "--voxel-counts",
+           str(missing), "--sim-times", str(missing), "-o", str(tmp_path / "out")]
+    r = subprocess.run(cmd, env={**plain_environ(), SWITCH: "sytem", "PYTHONPATH": str(WORKFLOW)},
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        "vlsforest stats: error: VLSFOREST_MEMORY must be 'system' (the C library's defaults) or "
+        "'keep' (the default), got 'sytem'"]
+    assert not (tmp_path / "out").exists()

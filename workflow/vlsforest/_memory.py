@@ -19,7 +19,9 @@ from __future__ import annotations
 import ctypes
 import os
 
-#: environment variable that turns the behaviour off (value ``system``)
+from vlsforest.errors import ConfigError
+
+#: environment variable that turns the behaviour off (``system``; ``keep`` or unset: on)
 SWITCH = "VLSFOREST_MEMORY"
 
 _M_TRIM_THRESHOLD = -1  # mallopt parameters (malloc.h)
@@ -56,9 +58,18 @@ def keep_freed_memory(environ: dict | None = None) -> bool:
     bool
         True when the settings were applied; False when ``VLSFOREST_MEMORY=system``, when the
         environment already carries malloc settings, or when the C library is not glibc on Linux.
+
+    Raises
+    ------
+    ConfigError
+        ``VLSFOREST_MEMORY`` set to anything but ``system`` or ``keep``.
     """
     env = os.environ if environ is None else environ
-    if env.get(SWITCH, "").strip().lower() == "system":
+    choice = env.get(SWITCH, "").strip().lower()
+    if choice not in ("", "keep", "system"):
+        raise ConfigError(f"{SWITCH} must be 'system' (the C library's defaults) or 'keep' "
+                          f"(the default), got {env[SWITCH]!r}")
+    if choice == "system":
         return False
     if any(_own_malloc_setting(k) for k in env):
         return False

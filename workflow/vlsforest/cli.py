@@ -58,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     only = argv[0] if argv and argv[0] in COMMANDS else None
     parser = build_parser(only)
     args = parser.parse_args(argv)
-    keep_freed_memory()  # less system time re-touching freed memory (vlsforest._memory)
     try:
+        keep_freed_memory()  # less system time re-touching freed memory (vlsforest._memory)
         rc = args.func(args)
     except VlsforestError as exc:
         print(f"vlsforest {args.command}: error: {exc}", file=sys.stderr)
