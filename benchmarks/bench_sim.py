@@ -142,7 +142,7 @@ def _bare_embree(scene):
     from embreex.mesh_construction import TriangleMesh
     import numpy as np
 
-    from vlsforest.sim.scene import _cube_triangles
+    from vlsforest.sim.scene import _cube_triangle_chunks
 
     if not all(scene._routing()):
         return None, None  # the big voxel sets are traced by the grid: no triangle equivalent
@@ -154,8 +154,8 @@ def _bare_embree(scene):
         TriangleMesh(sc, (m.vertices - shift).astype(np.float32), m.faces.astype(np.int32))
         parts.append(m.part)
     for v in scene._voxelsets:
-        verts, faces = _cube_triangles(v)
-        TriangleMesh(sc, (verts - shift).astype(np.float32), faces)
+        pieces = list(_cube_triangle_chunks(v, shift))
+        TriangleMesh(sc, np.concatenate([c[0] for c in pieces]), np.concatenate([c[1] for c in pieces]))
         parts.append(v.part)
     for p in scene._planes:
         x0, y0, x1, y1 = p.extent

@@ -146,3 +146,51 @@ def test_scene_handle_check_rejects_a_wrong_layout(monkeypatch):
     _embree.add_triangles(sc, v, f)
     o, d = _rays(1000)
     assert (sc.run(o, d, output=1)["geomID"] >= 0).any()
+
+
+def test_voxel_cubes_go_to_embree_in_pieces_with_the_same_bits(monkeypatch):
+    """Cube triangles written piece by piece into Embree's buffers give the BVH (and hits) of
+    the whole lattice's triangles copied by embreex; half size 0 drops a scaled cube."""
+    from vlsforest.sim import scene as scene_mod
+
+    rng = np.random.default_rng(4)
+    ijk = np.unique(rng.integers(0, 60, (90000, 3)), axis=0)
+    half = rng.uniform(0.0, 0.05, len(ijk))
+    half[::7] = 0.0
+    sc = Scene(voxel_backend="embree")
+    sc.add_voxels(1, ijk, [1.0, 2.0, 3.0], 0.1)
+    sc.add_voxels(2, ijk[:5000] + [0, 0, 70], [1.0, 2.0, 3.0], 0.1, half=half[:5000])
+    lo, hi = sc.bounds()
+    o = np.column_stack([rng.uniform(lo[0], hi[0], 100000), rng.uniform(lo[1], hi[1], 100000),
+                         np.full(100000, hi[2] + 1.0)])
+    d = np.column_stack([rng.normal(0, 0.2, 100000), rng.normal(0, 0.2, 100000), -np.ones(100000)])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    new = sc.trace(o, d)
+    assert (new[1] == 1).sum() > 5000 and (new[1] == 0).sum() > 5000  # both parts hit
+    chunks = []
+    real = scene_mod._cube_triangle_chunks
+    monkeypatch.setattr(scene_mod, "_cube_triangle_chunks",
+                        lambda v, shift: chunks.append(1) or real(v, shift, chunk=4096))
+    small = Scene(voxel_backend="embree")
+    small.__dict__.update({k: val for k, val in sc.__dict__.items() if k != "_embree"})
+    small._embree = None
+    np.testing.assert_array_equal(small.trace(o, d)[0], new[0])
+    assert len(chunks) == 2
+    # the reference: the whole lattice's triangles at once (the formula used until session 31),
+    # copied by embreex
+    monkeypatch.setattr(_embree, "_api", False)
+
+    def whole(v, shift):
+        keep = np.ones(len(v.ijk), bool) if v.half is None else v.half > 0
+        centre = v.origin + (v.ijk[keep] + 0.5) * v.size
+        h = np.full(len(centre), 0.5 * v.size) if v.half is None else v.half[keep]
+        verts = (centre[:, None, :] + h[:, None, None] * scene_mod._CUBE_CORNERS[None]).reshape(-1, 3)
+        faces = (scene_mod._CUBE_FACES[None] + 8 * np.arange(len(centre))[:, None, None]).reshape(-1, 3)
+        return [((verts - shift).astype(np.float32), faces.astype(np.int32))]
+
+    monkeypatch.setattr(scene_mod, "_cube_triangle_chunks", whole)
+    old = Scene(voxel_backend="embree")
+    old.__dict__.update({k: val for k, val in sc.__dict__.items() if k != "_embree"})
+    old._embree = None
+    for a, b in zip(old.trace(o, d), new):
+        np.testing.assert_array_equal(a, b)

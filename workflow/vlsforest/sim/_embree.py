@@ -106,6 +106,53 @@ def fast_upload_available() -> bool:
     return _load() is not None
 
 
+def add_triangle_chunks(scene, n_vertices: int, n_faces: int, chunks) -> None:
+    """Attach one triangle mesh given in pieces, written straight into Embree's buffers.
+
+    Parameters
+    ----------
+    scene : embreex.rtcore_scene.EmbreeScene
+        Scene made by :func:`new_scene`, not yet traced.
+    n_vertices, n_faces : int
+        Sizes of the whole mesh.
+    chunks : iterable of (ndarray, ndarray)
+        Consecutive pieces ``(vertices (k, 3) float32, faces (m, 3) int)``; faces index the
+        whole mesh's vertices. Only one piece at a time is held besides Embree's buffers (a
+        voxel lattice of millions of cubes needs no temporary copy of all its triangles).
+    """
+    lib = _load()
+    if lib is None or n_vertices == 0 or n_faces == 0:
+        parts = list(chunks)
+        add_triangles(scene, np.concatenate([c[0] for c in parts]) if parts else np.zeros((0, 3)),
+                      np.concatenate([c[1] for c in parts]) if parts else np.zeros((0, 3), np.int32))
+        return
+    h = _scene_handle(scene)
+    dev = lib.rtcGetSceneDevice(h)
+    geom = lib.rtcNewGeometry(dev, _GEOMETRY_TYPE_TRIANGLE)
+    try:
+        pv = lib.rtcSetNewGeometryBuffer(geom, _BUFFER_TYPE_VERTEX, 0, _FORMAT_FLOAT3, 16, n_vertices)
+        pi = lib.rtcSetNewGeometryBuffer(geom, _BUFFER_TYPE_INDEX, 0, _FORMAT_UINT3, 12, n_faces)
+        if not pv or not pi:
+            raise MemoryError(f"Embree could not allocate buffers for {n_faces:,} triangles")
+        vb = np.ctypeslib.as_array((ctypes.c_float * (4 * n_vertices)).from_address(pv)).reshape(-1, 4)
+        ib = np.ctypeslib.as_array((ctypes.c_uint32 * (3 * n_faces)).from_address(pi)).reshape(-1, 3)
+        a = b = 0
+        for v, f in chunks:
+            vb[a:a + len(v), :3] = v
+            vb[a:a + len(v), 3] = 0.0
+            ib[b:b + len(f)] = f
+            a += len(v)
+            b += len(f)
+        if a != n_vertices or b != n_faces:
+            raise ValueError(f"add_triangle_chunks: {a} vertices and {b} faces given, "
+                             f"{n_vertices} and {n_faces} announced")
+        lib.rtcCommitGeometry(geom)
+        lib.rtcAttachGeometry(h, geom)
+    finally:
+        lib.rtcReleaseGeometry(geom)
+        lib.rtcReleaseDevice(dev)
+
+
 def add_triangles(scene, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Attach a triangle mesh to an embreex scene (geometry ids in order of the calls).
 
@@ -120,27 +167,9 @@ def add_triangles(scene, vertices: np.ndarray, faces: np.ndarray) -> None:
     """
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     f = np.ascontiguousarray(faces, dtype=np.int32)
-    lib = _load()
-    if lib is None or len(v) == 0 or len(f) == 0:
+    if _load() is None or len(v) == 0 or len(f) == 0:
         from embreex.mesh_construction import TriangleMesh
 
         TriangleMesh(scene, v, f)
         return
-    h = _scene_handle(scene)
-    dev = lib.rtcGetSceneDevice(h)  # retained: released below
-    geom = lib.rtcNewGeometry(dev, _GEOMETRY_TYPE_TRIANGLE)
-    try:
-        pv = lib.rtcSetNewGeometryBuffer(geom, _BUFFER_TYPE_VERTEX, 0, _FORMAT_FLOAT3, 16, len(v))
-        pi = lib.rtcSetNewGeometryBuffer(geom, _BUFFER_TYPE_INDEX, 0, _FORMAT_UINT3, 12, len(f))
-        if not pv or not pi:
-            raise MemoryError(f"Embree could not allocate buffers for {len(f):,} triangles")
-        vb = np.ctypeslib.as_array((ctypes.c_float * (4 * len(v))).from_address(pv)).reshape(-1, 4)
-        vb[:, :3] = v
-        vb[:, 3] = 0.0
-        ib = np.ctypeslib.as_array((ctypes.c_uint32 * (3 * len(f))).from_address(pi)).reshape(-1, 3)
-        ib[:] = f
-        lib.rtcCommitGeometry(geom)
-        lib.rtcAttachGeometry(h, geom)
-    finally:
-        lib.rtcReleaseGeometry(geom)
-        lib.rtcReleaseDevice(dev)
+    add_triangle_chunks(scene, len(v), len(f), [(v, f)])

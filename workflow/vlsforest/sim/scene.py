@@ -136,12 +136,15 @@ class Scene:
     #: cube, ``benchmarks/bench_embree_build.py``) against what Embree saves per ray over the
     #: grid (≈ 0.16 µs at 0.25 m cells, more in finer lattices, where the grid walks more cells:
     #: ≈ 0.16 µs · (0.25 m / h)^0.6), with a margin of 1.25 for the build, and never sends more
-    #: than :attr:`EMBREE_VOXEL_MAX` cubes of one lattice to Embree (≈ 1 kB each; 1.7 M cubes
-    #: gave a 3.8 GB peak). Measured on the default forest's P1 (session 13, 2 workers): ULS
+    #: than :attr:`EMBREE_VOXEL_MAX` cubes of one lattice to Embree (≈ 1 kB each; session 31,
+    #: the default forest's P5 ULS, one worker: 0.02 m, 3.3 M cubes, 5.8 GB peak and 70 s in
+    #: Embree against 2.7 GB and 289 s in the grid; 0.05 m, 2.1 M cubes, 4.3 GB and 55 s
+    #: against 258 s; the limit was 2 M until the cubes went to Embree piece by piece,
+    #: :func:`_cube_triangle_chunks`). Measured on the default forest's P1 (session 13, 2 workers): ULS
     #: (92 M sub-rays) fixed 0.25 m 30.0 → 18.9 s, scaled 35.6 → 20.5 s, fixed 0.10 m 41.7 →
     #: 28.0 s, fixed 0.05 m 55.8 → 36.1 s in Embree; ALS (4.8 M sub-rays) scaled 3.5 s in the
     #: grid vs 5.6 s, fixed 0.05 m 4.9 vs 19.7 s.
-    EMBREE_VOXEL_MAX = 2_000_000
+    EMBREE_VOXEL_MAX = 4_000_000
     _EMBREE_BUILD_S_PER_CUBE = 6e-6
     _EMBREE_SAVES_S_PER_RAY = 0.16e-6
     _EMBREE_BUILD_MARGIN = 1.25
@@ -402,9 +405,9 @@ class Scene:
             labels.append(None)
         for v, in_embree in zip(self._voxelsets, self._routing()):
             if in_embree:
-                verts, faces = _cube_triangles(v)
-                if len(faces):
-                    _embree.add_triangles(sc, (verts - self._shift).astype(np.float32), faces)
+                n = _n_cubes(v)
+                if n:
+                    _embree.add_triangle_chunks(sc, 8 * n, 12 * n, _cube_triangle_chunks(v, self._shift))
                     parts.append(v.part)
                     labels.append(None)
         self._embree = sc
@@ -782,17 +785,30 @@ _CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [
                         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
 
 
-def _cube_triangles(v: _VoxelSet):
-    """The cubes of a voxel set as triangles (8 vertices and 12 faces per cube)."""
+def _n_cubes(v: _VoxelSet) -> int:
+    """Number of cubes a voxel set puts into the scene (scaled cubes of half size 0: none)."""
+    return len(v.ijk) if v.half is None else int(np.count_nonzero(v.half > 0))
+
+
+def _cube_triangle_chunks(v: _VoxelSet, shift, chunk: int = 1 << 16):
+    """The cubes of a voxel set as triangles (8 vertices and 12 faces per cube), in pieces of
+    ``chunk`` cubes, shifted to the Embree frame and in float32: one piece at a time in memory
+    besides Embree's own buffers. Yields ``(vertices, faces)``; faces index the whole set's
+    vertices."""
     if v.half is None:
-        centre = v.origin + (v.ijk + 0.5) * v.size
-        half = np.full(len(centre), 0.5 * v.size)
+        rows = np.arange(len(v.ijk))
     else:
-        keep = v.half > 0
-        centre, half = v.centre[keep], v.half[keep]
-    verts = (centre[:, None, :] + half[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
-    faces = (_CUBE_FACES[None] + 8 * np.arange(len(centre))[:, None, None]).reshape(-1, 3)
-    return verts, faces.astype(np.int32)
+        rows = np.flatnonzero(v.half > 0)
+    for a in range(0, len(rows), chunk):
+        r = rows[a:a + chunk]
+        if v.half is None or v.centre is None:  # full cells, or scaled cubes centred in theirs
+            centre = v.origin + (v.ijk[r] + 0.5) * v.size
+        else:
+            centre = v.centre[r]
+        half = np.full(len(centre), 0.5 * v.size) if v.half is None else v.half[r]
+        verts = (centre[:, None, :] + half[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
+        faces = (_CUBE_FACES[None] + 8 * np.arange(a, a + len(r))[:, None, None]).reshape(-1, 3)
+        yield (verts - shift).astype(np.float32), faces.astype(np.int32)
 
 
 def _lattice_key(s: _VoxelSet) -> tuple:
