@@ -122,9 +122,11 @@ def add_triangle_chunks(scene, n_vertices: int, n_faces: int, chunks) -> None:
     """
     lib = _load()
     if lib is None or n_vertices == 0 or n_faces == 0:
+        from embreex.mesh_construction import TriangleMesh
+
         parts = list(chunks)
-        add_triangles(scene, np.concatenate([c[0] for c in parts]) if parts else np.zeros((0, 3)),
-                      np.concatenate([c[1] for c in parts]) if parts else np.zeros((0, 3), np.int32))
+        TriangleMesh(scene, np.concatenate([c[0] for c in parts]).astype(np.float32),
+                     np.concatenate([c[1] for c in parts]).astype(np.int32))
         return
     h = _scene_handle(scene)
     dev = lib.rtcGetSceneDevice(h)
@@ -165,11 +167,6 @@ def add_triangles(scene, vertices: np.ndarray, faces: np.ndarray) -> None:
     faces : ndarray of int, shape (m, 3)
         Vertex indices of each triangle (0 ≤ index < n).
     """
-    v = np.ascontiguousarray(vertices, dtype=np.float32)
-    f = np.ascontiguousarray(faces, dtype=np.int32)
-    if _load() is None or len(v) == 0 or len(f) == 0:
-        from embreex.mesh_construction import TriangleMesh
-
-        TriangleMesh(scene, v, f)
-        return
+    v = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
+    f = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
     add_triangle_chunks(scene, len(v), len(f), [(v, f)])

@@ -375,7 +375,7 @@ class Scene:
     @property
     def n_voxels(self) -> int:
         """Number of cubes in the scene."""
-        return int(sum(len(s.ijk) if s.half is None else int((s.half > 0).sum()) for s in self._voxelsets))
+        return int(sum(_n_cubes(s) for s in self._voxelsets))
 
     @property
     def max_voxel_size(self) -> float:
