@@ -100,7 +100,7 @@ def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
             # no conda here: env-modules switches the profile's conda off (no rule uses
             # envmodules:), so the jobs run in this venv, as the local run does
             "--sdm", "env-modules",
-            # the profile's threads (simulate: 8, synth: 16) exceed this node's CPUs; SLURM
+            # the profile's threads (simulate: 8, synth_plot: 16) exceed this node's CPUs; SLURM
             # would keep such jobs pending forever
             "--max-threads", cpus,
             # no slurmdbd: sacct has no records, squeue knows the jobs for MinJobAge (1 h)
@@ -137,8 +137,9 @@ def test_quick_run_through_slurm_matches_the_local_run(quick_run, tmp_path):
     assert any(comment.startswith("rule_simulate") for *_, comment, _, _ in jobs), jobs
     slurm_logs = {p.stem for p in (workdir / ".snakemake" / "slurm_logs").rglob("*.log")}
     assert slurm_logs == set(submitted)
-    # SLURM's own limits came from the rules and the profile: synth asked for every CPU
-    synth = [j for j in jobs if j[4] == "rule_synth"]
+    # SLURM's own limits came from the rules and the profile: the plot's synthesis asked for
+    # every CPU (16, capped by --max-threads)
+    synth = [j for j in jobs if j[4].startswith("rule_synth_plot")]
     assert len(synth) == 1 and int(synth[0][3]) == cpus
     # select/cons_tres packed two 1-core jobs onto the 2 CPUs at once at least once
     spans = sorted((s, e) for _, _, _, c, _, s, e in jobs if int(c) == 1)

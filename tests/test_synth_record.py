@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from vlsforest.cli import main
-from vlsforest.errors import ConfigError
+from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import read_las
 from vlsforest.sim import Scene, simulate
 from vlsforest.sim.scanner import fwhm_to_1e2
@@ -252,3 +252,25 @@ def test_plots_recorded_side_by_side_give_the_same_bytes(tmp_path):
     assert files == sorted(p.relative_to(tmp_path / "both") for p in (tmp_path / "both").rglob("*") if p.is_file())
     for f in files:
         assert (tmp_path / "one" / f).read_bytes() == (tmp_path / "both" / f).read_bytes(), f
+    # one job per plot (the workflow's synth_plot rule: `synth --part`, then `collect truth`):
+    # the same folder, byte for byte; the forest-level truth files only from the gathering
+    cfg_path = tmp_path / "two.yaml"
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    phys_path = tmp_path / "physics.yaml"
+    phys_path.write_text(yaml.safe_dump(CHEAP_PHYSICS))
+    parts = tmp_path / "parts"
+    for plot in ("Q2", "Q1"):
+        assert main(["synth", str(cfg_path), "-o", str(parts), "--seed", "1", "--recording-physics", str(phys_path),
+                     "--plots", plot, "--part", "--workers", "1", "--quiet"]) == 0
+    assert not any((parts / "truth" / f).exists() for f in R.FOREST_TRUTH_FILES)
+    assert main(["collect", "truth", str(parts / "truth" / "Q2"), str(parts / "truth" / "Q1"),
+                 "-o", str(parts / "truth" / "trees.csv")]) == 0
+    assert files == sorted(p.relative_to(parts) for p in parts.rglob("*") if p.is_file())
+    for f in files:
+        assert (tmp_path / "one" / f).read_bytes() == (parts / f).read_bytes(), f
+    # plots recorded with different settings are not gathered into one forest
+    (parts / "truth" / "Q2" / "synth_settings.yaml").write_text("seed: 2\n")
+    with pytest.raises(InputDataError, match="different settings"):
+        R.gather_truth([parts / "truth" / "Q1", parts / "truth" / "Q2"], tmp_path / "x.csv")
+    with pytest.raises(ConfigError, match="--plots"):
+        R.synthesize(cfg, tmp_path / "none", part=True)

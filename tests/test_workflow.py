@@ -53,7 +53,10 @@ def _snakemake(*args, cwd, timeout=300):
 
 def _expected_outputs(cfg):
     """Every output the default target builds for config ``cfg``."""
-    out = {"results/forest"}
+    virtual = [p for p, block in cfg["plots"].items() if block.get("kind", "virtual") == "virtual"]
+    out = {f"results/forest/{d}/{p}" for p in virtual for d in ("plots", "truth")}
+    if virtual:
+        out |= {f"results/forest/truth/{f}" for f in ("trees.csv", "synth_settings.yaml", "recording_physics.yaml")}
     out |= {f"results/summary/{f}" for f in ("tree_metrics.csv", "voxel_counts.csv", "sim_times.csv",
                                              "pad_validation.csv", "pad_validation.png", "figures")}
     out |= {f"results/summary/stats/{f}" for f in STATS_FILES}
@@ -413,13 +416,16 @@ def test_local_profile_runs_one_cpu_jobs_side_by_side_and_the_diagnosis_first(tm
     assert len(sims) == len(cfg["plots"]) * len(cfg["methods"]) * len(cfg["scenarios"])
     assert {j["threads"] for j in sims} == {1}
     assert [j["threads"] for j in jobs if j["rule"] == "diagnose"] == [1]
-    assert [j["threads"] for j in jobs if j["rule"] == "synth"] == [2]  # not in set-threads
+    # one synthesis job per plot, the 2 cores shared by the 6 plots: one worker each, side by side
+    synth = [j for j in jobs if j["rule"] == "synth_plot"]
+    assert sorted(j["wildcards"] for j in synth) == sorted(f"plot={p}" for p in cfg["plots"])
+    assert {j["threads"] for j in synth} == {1}
     first = {(j["rule"], j["wildcards"]) for j in jobs if j["priority"] == "highest"}
     d = cfg["diagnosis"]
     plot, method, scenario = d["plots"][0], d["method"], d["scenarios"][0]
     assert len(d["plots"]) == 1 and len(d["scenarios"]) == 1
     assert first == {
-        ("synth", ""), ("segment", f"plot={plot}"), ("targets", f"plot={plot}"), ("stems", f"plot={plot}"),
+        ("synth_plot", f"plot={plot}"), ("segment", f"plot={plot}"), ("targets", f"plot={plot}"), ("stems", f"plot={plot}"),
         ("crowns", f"plot={plot}"), ("pad_virtual", f"plot={plot}"),
         ("voxels", f"plot={plot}, method={method}"), ("scene", f"plot={plot}, method={method}"),
         ("survey", f"plot={plot}, scenario={scenario}"), ("diagnose", f"scenario={scenario}")}

@@ -123,7 +123,7 @@ def plot_files(wildcards):
     """Input files of a plot: the forest folder (virtual) or the real data files."""
     p = config["plots"][wildcards.plot]
     if is_virtual(wildcards.plot):
-        return {"forest": "results/forest"}
+        return {"forest": f"results/forest/plots/{wildcards.plot}"}
     files = {"tls": p["tls"], "scans": p["scans"], "plot_json": p["plot_json"]}
     for sc in SCENARIOS:
         rec = config["scenarios"][sc].get("recording", sc)
@@ -245,9 +245,20 @@ def final_outputs():
         "results/summary/figures",
     ]
     if virtual_plots():
-        out.append("results/summary/pad_validation.csv")
+        out += ["results/summary/pad_validation.csv", "results/forest/truth/trees.csv"]
     out += expand("results/diagnosis/{scenario}.json", scenario=diagnosis_scenarios())
     return out
+
+
+def synth_threads(wildcards=None):
+    """Worker processes of one plot's synthesis: the local cores shared by the virtual plots, which
+    are recorded side by side (2 cores, 6 plots: one each, and a finished plot's jobs take a core;
+    one plot: both); 16 where no core count is given (a cluster: --max-threads caps it)."""
+    cores = workflow._cores
+    n = max(1, len(virtual_plots()))
+    if cores is None or cores >= 1 << 30:
+        return 16
+    return max(1, min(16, int(cores) // n))
 
 
 def synth_param(wildcards=None):
@@ -370,8 +381,8 @@ def diagnosis_inputs(wildcards):
         out[f"scene_{plot}"] = f"results/{plot}/{method}/scene"
         out[f"survey_{plot}"] = f"results/{plot}/surveys/{wildcards.scenario}.yaml"
         out[f"segment_{plot}"] = f"results/{plot}/segment"
-        # a virtual plot's recording lies inside the forest folder (a directory output)
-        out[f"real_{plot}"] = "results/forest" if is_virtual(plot) else _plot_path(plot, "recording", rec)
+        # a virtual plot's recording lies inside its folder of the forest (a directory output)
+        out[f"real_{plot}"] = f"results/forest/plots/{plot}" if is_virtual(plot) else _plot_path(plot, "recording", rec)
     return out
 
 

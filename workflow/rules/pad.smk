@@ -28,7 +28,8 @@ rule pad:
 
 rule pad_virtual:
     input:
-        forest="results/forest",
+        forest="results/forest/plots/{plot}",
+        truth="results/forest/truth/{plot}",
     output:
         vox="results/{plot}/pad/pad.vox",
         table="results/{plot}/pad/validation.csv",
@@ -50,7 +51,7 @@ rule pad_virtual:
         library=PAD_HASH,
     shell:
         "python -m vlsforest.cli pad {params.tls_dir} {params.args} -o {output.vox} "
-        "--validate {input.forest} --plot {wildcards.plot} --table {output.table} --figure {output.figure} "
+        "--validate results/forest --plot {wildcards.plot} --table {output.table} --figure {output.figure} "
         "> {log} 2>&1"
 
 

@@ -1,24 +1,45 @@
 # The embedded virtual Bretten forest: trees, plots, TLS scans and "real" ALS/ULS recordings
-# (vlsforest.synth). Everything downstream reads results/forest/plots/; only validation steps
-# may read results/forest/truth/.
+# (vlsforest.synth), one job per plot: a plot's downstream jobs start as soon as its recordings
+# are written, beside the synthesis of the other plots (the plots are independent: own seeds; the
+# same bytes as one `vlsforest synth` call for the whole forest). Everything downstream reads
+# results/forest/plots/{plot}/; only validation steps read results/forest/truth/.
 
 
-rule synth:
+rule synth_plot:
     output:
-        forest=directory("results/forest"),
+        plot=directory("results/forest/plots/{plot}"),
+        truth=directory("results/forest/truth/{plot}"),
     log:
-        "logs/synth/synth.log",
+        "logs/synth/{plot}.log",
     benchmark:
-        "logs/benchmarks/synth.tsv"
+        "logs/benchmarks/synth/{plot}.tsv"
+    wildcard_constraints:
+        plot="|".join(map(re.escape, virtual_plots())) or "(?!)",
     conda:
         "../../envs/vlsforest.yaml"
-    threads: 16
+    threads: synth_threads
     resources:
-        mem_mb=12000,
-        runtime=60,
+        mem_mb=8000,
+        runtime=30,
     params:
         settings=synth_param,
         library=SYNTH_HASH,
     shell:
-        "python -m vlsforest.cli synth --config-json {params.settings:q} --workers {threads} "
-        "-o {output.forest} > {log} 2>&1"
+        "python -m vlsforest.cli synth --config-json {params.settings:q} --plots {wildcards.plot} --part "
+        "--workers {threads} -o results/forest > {log} 2>&1"
+
+
+# the forest's truth table and settings, from the plots' truth folders (the same bytes as one call)
+rule forest_truth:
+    input:
+        expand("results/forest/truth/{plot}", plot=virtual_plots()),
+    output:
+        trees="results/forest/truth/trees.csv",
+        settings="results/forest/truth/synth_settings.yaml",
+        physics="results/forest/truth/recording_physics.yaml",
+    log:
+        "logs/synth/forest_truth.log",
+    conda:
+        "../../envs/vlsforest.yaml"
+    shell:
+        "python -m vlsforest.cli collect truth {input} -o {output.trees} > {log} 2>&1"

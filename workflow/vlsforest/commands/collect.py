@@ -9,6 +9,9 @@
     ``plot, method, scenario, seconds, n_pulses, n_points``.
 ``collect pad results/{plot}/pad/validation.csv … -o pad_validation.csv [--figure F.png]``
     the PAD validation tables of all plots (and their figure).
+``collect truth results/forest/truth/{plot} … -o results/forest/truth/trees.csv``
+    the virtual forest's truth table of plots recorded one by one (``vlsforest synth --part``),
+    with its ``synth_settings.yaml`` and ``recording_physics.yaml`` beside it.
 
 The plot, method and scenario are read from the paths (the workflow's results layout).
 """
@@ -24,7 +27,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``collect`` sub-command."""
     p = subparsers.add_parser("collect", help="gather per-plot outputs into summary tables",
                               description="Gather per-plot workflow outputs into the summary tables.")
-    p.add_argument("what", choices=("metrics", "voxels", "times", "pad"))
+    p.add_argument("what", choices=("metrics", "voxels", "times", "pad", "truth"))
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("-o", "--output", required=True, type=Path)
     p.add_argument("--figure", type=Path, default=None, help="pad: also draw the validation figure")
@@ -48,6 +51,12 @@ def run(args) -> int:
     from vlsforest.errors import InputDataError
 
     rows = []
+    if args.what == "truth":
+        from vlsforest.synth.record import gather_truth
+
+        names = gather_truth(args.inputs, args.output)
+        print(f"collect truth: {len(names)} plots ({', '.join(names)}) -> {args.output}")
+        return 0
     if args.what == "metrics":
         frames, species = [], {}
         for f in args.inputs:

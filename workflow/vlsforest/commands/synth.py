@@ -22,6 +22,10 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="master seed (default: the config's seed, else 0)")
     p.add_argument("--recording-physics", default=None, help="recording physics YAML (default: built in)")
     p.add_argument("--plots", default=None, help="comma-separated plot names (default: all)")
+    p.add_argument("--part", action="store_true",
+                   help="write only the --plots' own folders (plots/<plot>/, truth/<plot>/), not the forest's "
+                        "truth/trees.csv and settings: one workflow job per plot; `vlsforest collect truth` "
+                        "writes those afterwards (the same bytes as one call for all plots)")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
@@ -55,5 +59,6 @@ def run(args) -> int:
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
     physics = load_recording_physics(args.recording_physics) if args.recording_physics else None
     plots = [p.strip() for p in args.plots.split(",") if p.strip()] if args.plots else None
-    synthesize(cfg, args.output, seed=seed, physics=physics, plots=plots, workers=args.workers, quiet=args.quiet)
+    synthesize(cfg, args.output, seed=seed, physics=physics, plots=plots, workers=args.workers, quiet=args.quiet,
+               part=args.part)
     return 0

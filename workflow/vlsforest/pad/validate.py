@@ -51,7 +51,8 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     Parameters
     ----------
     forest_dir : path
-        A folder written by ``vlsforest synth`` (``truth/synth_settings.yaml``,
+        A folder written by ``vlsforest synth`` (``truth/{plot}/synth_settings.yaml`` and
+        ``truth/{plot}/trees.csv``, else the forest's ``truth/synth_settings.yaml`` and
         ``truth/trees.csv``).
     plot : str
         Plot name.
@@ -69,8 +70,12 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     from vlsforest.synth.forest import forest_from_config, generate_plot_trees
 
     forest_dir = Path(forest_dir)
-    st_path = forest_dir / "truth" / "synth_settings.yaml"
-    tr_path = forest_dir / "truth" / "trees.csv"
+    # the plot's own truth folder (a plot recorded alone, `vlsforest synth --part`), else the forest's
+    truth = forest_dir / "truth" / plot
+    if not (truth / "synth_settings.yaml").is_file():
+        truth = forest_dir / "truth"
+    st_path = truth / "synth_settings.yaml"
+    tr_path = truth / "trees.csv"
     for p in (st_path, tr_path):
         if not p.is_file():
             raise InputDataError(f"{p}: no such file (the truth of a virtual forest is needed)")

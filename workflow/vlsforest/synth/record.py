@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from vlsforest.errors import ConfigError
+from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud, write_las
 from vlsforest.io.mesh import TriangleMesh, write_mesh
 from vlsforest.sim.engine import simulate
@@ -576,7 +576,7 @@ def _plot_processes(workers, n_plots: int) -> int:
 
 
 def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign: dict, seed: int,
-                quiet: bool):
+                quiet: bool, forest_files: dict):
     """Grow, describe and record one plot; returns its truth table and timings."""
     from vlsforest.synth.forest import generate_plot_trees, truth_table
 
@@ -588,13 +588,19 @@ def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign
     write_truth_stems(geoms, plot, out)
     tt = truth_table([plot], geoms)
     tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
+    for name, text in forest_files.items():  # the plot's truth folder holds what rebuilds it
+        (out / "truth" / plot.name / name).write_text(text)
     tm = record_plot(plot, geoms, out, physics, tls_cfg, campaign, seed, workers=workers, quiet=quiet)
     tm["total_s"] = time.perf_counter() - t0
     return tt, tm
 
 
+#: forest-level truth files (``truth/``); every plot's truth folder holds a copy of the two YAML files
+FOREST_TRUTH_FILES = ("trees.csv", "recording_physics.yaml", "synth_settings.yaml")
+
+
 def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = None, plots=None,
-               workers=None, quiet: bool = False) -> dict:
+               workers=None, quiet: bool = False, part: bool = False) -> dict:
     """Build the virtual forest and record it (the ``vlsforest synth`` command).
 
     Parameters
@@ -609,6 +615,11 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
         Recording physics (default :data:`DEFAULT_RECORDING_PHYSICS`).
     plots : list of str, optional
         Plot names to build (default all).
+    part : bool
+        Write only the plots' own folders (``plots/{plot}/``, ``truth/{plot}/``), not the
+        forest-level ``truth/`` files: one workflow job per plot, several writing into the same
+        folder; :func:`gather_truth` writes those files afterwards, the same bytes as one call for
+        all the plots. Needs ``plots``.
 
     Returns
     -------
@@ -626,11 +637,16 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
         if unknown:
             raise ConfigError(f"--plots: unknown plot(s) {unknown} (known: {names})")
         layouts = [p for p in layouts if p.name in plots]
+    if part and not plots:
+        raise ConfigError("part: name the plots to record (--plots)")
     out = Path(out_dir)
     (out / "truth").mkdir(parents=True, exist_ok=True)
-    (out / "truth" / "recording_physics.yaml").write_text(yaml.safe_dump(physics, sort_keys=True))
-    (out / "truth" / "synth_settings.yaml").write_text(yaml.safe_dump({"seed": int(seed), **st}, sort_keys=True))
-    args = (out, physics, st["tls"], st["recordings"], seed, quiet)
+    files = {"recording_physics.yaml": yaml.safe_dump(physics, sort_keys=True),
+             "synth_settings.yaml": yaml.safe_dump({"seed": int(seed), **st}, sort_keys=True)}
+    if not part:
+        for name, text in files.items():
+            (out / "truth" / name).write_text(text)
+    args = (out, physics, st["tls"], st["recordings"], seed, quiet, files)
     n_proc = _plot_processes(workers, len(layouts))
     if n_proc > 1:
         # two plots at a time, each recorded with all the workers: growing the trees, the TLS
@@ -648,6 +664,70 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
         done = [_synth_plot(plot, workers, *args) for plot in layouts]
     truth = [tt for tt, _ in done]
     timings = {plot.name: tm for plot, (_, tm) in zip(layouts, done)}
-    table = pd.concat(truth, ignore_index=True)
-    table.to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
+    if not part:
+        table = pd.concat(truth, ignore_index=True)
+        table.to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
     return timings
+
+
+def gather_truth(plot_truth_dirs, out_csv) -> list[str]:
+    """Write the forest-level truth files from plots recorded one by one (``synthesize(part=True)``).
+
+    Parameters
+    ----------
+    plot_truth_dirs : list of path
+        The plots' truth folders (``DIR/truth/{plot}``), each with ``trees.csv``,
+        ``synth_settings.yaml`` and ``recording_physics.yaml``.
+    out_csv : path
+        The forest's ``truth/trees.csv``; the two YAML files are written beside it.
+
+    Returns
+    -------
+    list of str
+        The plots, in the forest's order (the order of ``trees.csv``).
+
+    Raises
+    ------
+    InputDataError
+        A file is missing, or the plots were recorded with different settings or physics.
+    """
+    from vlsforest.synth.forest import forest_from_config
+
+    dirs = [Path(d) for d in plot_truth_dirs]
+    if not dirs:
+        raise InputDataError("no plot truth folder to gather")
+    texts = {}
+    for d in dirs:
+        for name in FOREST_TRUTH_FILES:
+            if not (d / name).is_file():
+                raise InputDataError(f"{d / name}: no such file (a plot recorded by vlsforest synth --part)")
+        for name in FOREST_TRUTH_FILES[1:]:
+            text = (d / name).read_text()
+            if texts.setdefault(name, (d, text))[1] != text:
+                raise InputDataError(f"{d / name} differs from {texts[name][0] / name}: the plots were "
+                                     "recorded with different settings; re-record them together")
+    try:
+        st = yaml.safe_load(texts["synth_settings.yaml"][1])
+        order = [p.name for p in forest_from_config(st["forest"], int(st["seed"]))]
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise InputDataError(f"{texts['synth_settings.yaml'][0]}/synth_settings.yaml: not a synth settings "
+                             f"file ({exc})") from None
+    by_name = {d.name: d for d in dirs}
+    unknown = sorted(set(by_name) - set(order))
+    if unknown or len(by_name) != len(dirs):
+        raise InputDataError(f"plot truth folders {unknown or [str(d) for d in dirs]}: not the plots of one "
+                             f"forest (its plots: {order})")
+    names = [n for n in order if n in by_name]
+    out_csv = Path(out_csv)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    # the plots' tables one after the other, header once: the bytes of one call for all plots
+    lines = []
+    for i, n in enumerate(names):
+        rows = (by_name[n] / "trees.csv").read_text().splitlines(keepends=True)
+        if i and rows[:1] != lines[:1]:
+            raise InputDataError(f"{by_name[n] / 'trees.csv'}: columns differ from {by_name[names[0]] / 'trees.csv'}")
+        lines += rows if i == 0 else rows[1:]
+    out_csv.write_text("".join(lines))
+    for name in FOREST_TRUTH_FILES[1:]:
+        (out_csv.parent / name).write_text(texts[name][1])
+    return names
