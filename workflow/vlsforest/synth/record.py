@@ -587,6 +587,7 @@ def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign
     write_plot_info(plot, out)
     write_truth_stems(geoms, plot, out)
     tt = truth_table([plot], geoms)
+    (out / "truth" / plot.name).mkdir(parents=True, exist_ok=True)  # also for a plot without targets
     tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
     for name, text in forest_files.items():  # the plot's truth folder holds what rebuilds it
         (out / "truth" / plot.name / name).write_text(text)
