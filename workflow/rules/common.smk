@@ -254,7 +254,10 @@ def synth_threads(wildcards=None):
     """Worker processes of one plot's synthesis: the local cores shared by the virtual plots, which
     are recorded side by side (2 cores, 6 plots: one each, and a finished plot's jobs take a core;
     one plot: both); 16 where no core count is given (a cluster: --max-threads caps it)."""
-    cores = workflow._cores
+    try:
+        cores = workflow.cores
+    except WorkflowError:  # no --cores given
+        cores = None
     n = max(1, len(virtual_plots()))
     if cores is None or cores >= 1 << 30:
         return 16

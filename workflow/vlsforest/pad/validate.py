@@ -31,7 +31,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.pad.estimate import estimate_pad
@@ -67,7 +66,7 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     trees : pandas.DataFrame
         The plot's rows of ``truth/trees.csv`` (all trees).
     """
-    from vlsforest.synth.forest import forest_from_config, generate_plot_trees
+    from vlsforest.synth.forest import generate_plot_trees, layouts_from_settings
 
     forest_dir = Path(forest_dir)
     # the plot's own truth folder (a plot recorded alone, `vlsforest synth --part`), else the forest's
@@ -79,13 +78,7 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     for p in (st_path, tr_path):
         if not p.is_file():
             raise InputDataError(f"{p}: no such file (the truth of a virtual forest is needed)")
-    try:
-        st = yaml.safe_load(st_path.read_text())
-        seed = int(st["seed"])
-        forest_cfg = st["forest"]
-    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise InputDataError(f"{st_path}: not a synth settings file ({exc})") from None
-    layouts = {p.name: p for p in forest_from_config(forest_cfg, seed)}
+    layouts = {p.name: p for p in layouts_from_settings(st_path)}
     if plot not in layouts:
         raise InputDataError(f"{st_path}: no plot {plot!r} (plots: {sorted(layouts)})")
     trees = pd.read_csv(tr_path)

@@ -56,6 +56,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Iterable
 
 import numpy as np
@@ -732,6 +733,35 @@ def forest_from_config(cfg: dict, seed: int) -> list[PlotLayout]:
     opts, pcs = _validate(cfg)
     _assign_targets(pcs, opts, int(seed))
     return [_layout_plot(pc, opts, int(seed)) for pc in pcs]
+
+
+def layouts_from_settings(path) -> list[PlotLayout]:
+    """The plot layouts of a recorded forest, rebuilt from its ``synth_settings.yaml``.
+
+    Parameters
+    ----------
+    path : path
+        A ``truth/synth_settings.yaml`` (or a plot's copy) written by ``vlsforest synth``.
+
+    Returns
+    -------
+    list of PlotLayout
+        As :func:`forest_from_config` with the file's ``forest`` block and ``seed``.
+
+    Raises
+    ------
+    InputDataError
+        The file is not a synth settings file.
+    """
+    import yaml
+
+    try:
+        st = yaml.safe_load(Path(path).read_text())
+        seed = int(st["seed"])
+        forest_cfg = st["forest"]
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise InputDataError(f"{path}: not a synth settings file ({exc})") from None
+    return forest_from_config(forest_cfg, seed)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -692,7 +692,7 @@ def gather_truth(plot_truth_dirs, out_csv) -> list[str]:
     InputDataError
         A file is missing, or the plots were recorded with different settings or physics.
     """
-    from vlsforest.synth.forest import forest_from_config
+    from vlsforest.synth.forest import layouts_from_settings
 
     dirs = [Path(d) for d in plot_truth_dirs]
     if not dirs:
@@ -707,12 +707,7 @@ def gather_truth(plot_truth_dirs, out_csv) -> list[str]:
             if texts.setdefault(name, (d, text))[1] != text:
                 raise InputDataError(f"{d / name} differs from {texts[name][0] / name}: the plots were "
                                      "recorded with different settings; re-record them together")
-    try:
-        st = yaml.safe_load(texts["synth_settings.yaml"][1])
-        order = [p.name for p in forest_from_config(st["forest"], int(st["seed"]))]
-    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise InputDataError(f"{texts['synth_settings.yaml'][0]}/synth_settings.yaml: not a synth settings "
-                             f"file ({exc})") from None
+    order = [p.name for p in layouts_from_settings(texts["synth_settings.yaml"][0] / "synth_settings.yaml")]
     by_name = {d.name: d for d in dirs}
     unknown = sorted(set(by_name) - set(order))
     if unknown or len(by_name) != len(dirs):
