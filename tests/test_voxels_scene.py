@@ -445,3 +445,44 @@ def test_extract_reference_cli_drops_ground_and_rejects_bad_classes(tmp_path, ca
     assert cli_main([*base, "--exclude-classes", "2,ground", "-o", str(tmp_path / "c.laz")]) != 0
     assert "not a comma-separated list" in capsys.readouterr().err
     assert not (tmp_path / "c.laz").exists()
+
+
+def test_extract_sim_metrics_are_those_of_the_written_trees(tmp_path, capsys):
+    """`extract sim --metrics` writes, in the same process, the bytes `vlsforest metrics` writes
+    for the extracted trees.laz: heights above each target's ground z, a row (NaN) for a target
+    without points; a targets table without z is refused before anything is written."""
+    import pandas as pd
+
+    from vlsforest.cli import main as cli_main
+    from vlsforest.io.las import write_las
+
+    rng = np.random.default_rng(3)
+    n = 400
+    xyz = np.c_[rng.uniform(-2, 2, n) + 100.123456, rng.uniform(-2, 2, n) + 200.98765, rng.uniform(0, 1, n)]
+    oid = rng.choice([71, 72, 81, 1, 5], n)  # target 7's stem and crown, tree 8's stem, ground, other
+    xyz[oid == 72, 2] = 300.0 + 20.0 * rng.uniform(0.2, 1.0, (oid == 72).sum())  # crown 306–320 m
+    xyz[oid == 71, 2] = 300.0 + 6.0 * rng.uniform(0.0, 1.0, (oid == 71).sum())  # stem 300–306 m
+    write_las(tmp_path / "sim.laz", PointCloud(xyz, {
+        "object_id": oid.astype(np.int32),
+        "return_number": np.ones(n, np.uint8), "number_of_returns": np.ones(n, np.uint8),
+        "gps_time": np.arange(n, dtype=np.float64)}))
+    pd.DataFrame({"target_id": [301, 302], "tree_id": [7, 9], "z": [299.5, 280.0]}).to_csv(
+        tmp_path / "targets.csv", index=False)
+    base = ["extract", "sim", str(tmp_path / "sim.laz"), "--targets", str(tmp_path / "targets.csv")]
+    assert cli_main([*base, "-o", str(tmp_path / "t.laz"), "--metrics", str(tmp_path / "m1.csv")]) == 0
+    assert cli_main(["metrics", str(tmp_path / "t.laz"), "--tree-id", "tree_id", "--ground-table",
+                     str(tmp_path / "targets.csv"), "--ground-key", "target_id", "-o", str(tmp_path / "m2.csv")]) == 0
+    assert (tmp_path / "m1.csv").read_bytes() == (tmp_path / "m2.csv").read_bytes()
+    m = pd.read_csv(tmp_path / "m1.csv")
+    assert m.tree_id.tolist() == [301, 302]
+    top = xyz[np.isin(oid, (71, 72)), 2].max()
+    assert m.height[0] == pytest.approx(top - 299.5, abs=1e-3)  # above the target's own ground
+    assert m.n_points.tolist() == [(np.isin(oid, (71, 72))).sum(), 0]  # target 9 was not hit: NaNs
+    assert m.drop(columns=["tree_id", "n_points"]).iloc[1].isna().all()
+    capsys.readouterr()
+    pd.DataFrame({"target_id": [301], "tree_id": [7]}).to_csv(tmp_path / "noz.csv", index=False)
+    bad = ["extract", "sim", str(tmp_path / "sim.laz"), "--targets", str(tmp_path / "noz.csv"),
+           "-o", str(tmp_path / "u.laz"), "--metrics", str(tmp_path / "u.csv")]
+    assert cli_main(bad) == 2
+    assert "needs columns 'target_id' and 'z'" in capsys.readouterr().err
+    assert not (tmp_path / "u.laz").exists() and not (tmp_path / "u.csv").exists()

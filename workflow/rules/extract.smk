@@ -1,5 +1,6 @@
 # Reference tree clouds: the real ALS/ULS points within the scenario's radius of each target's
-# TLS points (the study: 0.5 m ALS, 0.3 m ULS), all returns kept.
+# TLS points (the study: 0.5 m ALS, 0.3 m ULS), all returns kept, and their per-tree metrics
+# (written in the same job, from the file as written).
 
 
 rule extract_reference:
@@ -8,7 +9,8 @@ rule extract_reference:
         segment="results/{plot}/segment",
         targets="results/{plot}/targets.csv",
     output:
-        "results/{plot}/reference/{scenario}/trees.laz",
+        trees="results/{plot}/reference/{scenario}/trees.laz",
+        metrics="results/{plot}/reference/{scenario}/metrics.csv",
     log:
         "logs/extract/{plot}_reference_{scenario}.log",
     conda:
@@ -20,6 +22,7 @@ rule extract_reference:
         recording=scenario_recording,
         radius=scenario_radius,
         library=EXTRACT_HASH,
+        metrics_library=METRICS_HASH,
     shell:
         "python -m vlsforest.cli extract reference {params.recording} --segment {input.segment} "
-        "--targets {input.targets} --radius {params.radius} -o {output} > {log} 2>&1"
+        "--targets {input.targets} --radius {params.radius} -o {output.trees} --metrics {output.metrics} > {log} 2>&1"

@@ -1,25 +1,7 @@
 # Per-tree metrics (the study's Table 4) of every simulated and reference target-tree cloud,
 # heights above the target's segmented stem base (the same ground for simulation and reference).
-
-
-rule tree_metrics:
-    input:
-        trees="results/{plot}/{source}/{scenario}/trees.laz",
-        targets="results/{plot}/targets.csv",
-    output:
-        "results/{plot}/{source}/{scenario}/metrics.csv",
-    log:
-        "logs/metrics/{plot}_{source}_{scenario}.log",
-    conda:
-        "../../envs/vlsforest.yaml"
-    resources:
-        mem_mb=2000,
-        runtime=10,
-    params:
-        library=METRICS_HASH,
-    shell:
-        "python -m vlsforest.cli metrics {input.trees} --tree-id tree_id --ground-table {input.targets} "
-        "--ground-key target_id -o {output} > {log} 2>&1"
+# Each cloud's table is written by the job that extracts the cloud (rules sim_trees and
+# extract_reference, `vlsforest extract … --metrics`); this file collects them.
 
 
 rule collect_metrics:

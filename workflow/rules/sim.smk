@@ -1,5 +1,5 @@
 # Survey per plot × scenario (re-flying the recorded trajectory), simulation per
-# plot × method × scenario, and the simulated target-tree clouds.
+# plot × method × scenario, and the simulated target-tree clouds with their metrics.
 
 
 rule survey:
@@ -59,11 +59,14 @@ rule simulate:
 
 
 rule sim_trees:
+    # the target trees' points and their metrics in one job (one start-up and one read of the
+    # simulated cloud instead of two jobs); the metrics are computed from trees.laz as written
     input:
         laz="results/{plot}/{method}/{scenario}/sim.laz",
         targets="results/{plot}/targets.csv",
     output:
-        "results/{plot}/{method}/{scenario}/trees.laz",
+        trees="results/{plot}/{method}/{scenario}/trees.laz",
+        metrics="results/{plot}/{method}/{scenario}/metrics.csv",
     log:
         "logs/extract/{plot}_{method}_{scenario}.log",
     conda:
@@ -73,8 +76,10 @@ rule sim_trees:
         runtime=10,
     params:
         library=EXTRACT_HASH,
+        metrics_library=METRICS_HASH,
     shell:
-        "python -m vlsforest.cli extract sim {input.laz} --targets {input.targets} -o {output} > {log} 2>&1"
+        "python -m vlsforest.cli extract sim {input.laz} --targets {input.targets} -o {output.trees} "
+        "--metrics {output.metrics} > {log} 2>&1"
 
 
 rule sim_times:

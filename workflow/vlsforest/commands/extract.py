@@ -4,13 +4,18 @@
 labels the real ALS/ULS points within R m of a target's TLS points (the study: 0.5 m ALS,
 0.3 m ULS; nearest tree wins); ``vlsforest extract sim SIM.laz --targets targets.csv -o trees.laz``
 takes a simulated cloud's target points by object id. Both write only the target points, all
-returns and attributes kept, with the extra dimension ``tree_id`` = the target's id.
+returns and attributes kept, with the extra dimension ``tree_id`` = the target's id. With
+``--metrics OUT.csv`` they also write the target trees' metrics, as ``vlsforest metrics
+trees.laz --tree-id tree_id --ground-table targets.csv --ground-key target_id`` would (the same
+bytes, computed from the file just written), in the same process.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from vlsforest.commands.metrics import add_metric_options
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -32,6 +37,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument("cloud", type=Path, help="simulated LAS/LAZ (with object_id)")
     s.add_argument("--targets", required=True, type=Path, help="targets.csv")
     s.add_argument("-o", "--output", required=True, type=Path)
+    for q in (r, s):
+        q.add_argument("--metrics", type=Path, default=None, metavar="OUT.csv",
+                       help="also write the target trees' metrics (vlsforest metrics; heights above "
+                            "each target's ground z of the targets table)")
+        add_metric_options(q)
     p.set_defaults(func=run)
     return p
 
@@ -65,12 +75,14 @@ def run(args) -> int:
     """Execute ``vlsforest extract``."""
     import numpy as np
 
+    from vlsforest.commands.metrics import ground_table, write_metrics
     from vlsforest.errors import InputDataError
     from vlsforest.extract import extract_reference, extract_simulated
     from vlsforest.io.las import read_las, write_las
     from vlsforest.scene import object_ids
 
     targets = _targets(args.targets)
+    ground = ground_table(args.targets, "target_id") if args.metrics is not None else None
     cloud = read_las(args.cloud, allow_empty=True)
     seg_to_target = dict(zip(targets.tree_id.astype(int), targets.target_id.astype(int)))
     if args.what == "reference":
@@ -101,4 +113,9 @@ def run(args) -> int:
     write_las(args.output, out, extra={"tree_id": tree})
     counts = {int(t): int((tree == t).sum()) for t in targets.target_id}
     print(f"extract {args.what}: {int(keep.sum())} of {len(cloud)} points in {len(counts)} target trees {counts}")
+    if args.metrics is not None:  # from the file as written (LAS-quantised), like a later `metrics` run
+        df = write_metrics(read_las(args.output, allow_empty=True), "tree_id", ground, args.metrics,
+                           source=str(args.output), multi_return=args.multi_return,
+                           cbh_convention=args.cbh_convention, prog="vlsforest extract")
+        print(f"extract {args.what}: metrics of {len(df)} trees -> {args.metrics}")
     return 0

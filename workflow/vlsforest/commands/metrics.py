@@ -21,8 +21,6 @@ FLOAT_FORMAT = "%.6f"
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``metrics`` sub-command to ``subparsers``."""
-    from vlsforest.metrics import CBH_CONVENTIONS, MULTI_RETURN_MODES
-
     p = subparsers.add_parser(
         "metrics",
         help="per-tree metrics (height, percentiles, densities, CBH, CPA …) as CSV",
@@ -40,6 +38,15 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="per-tree terrain height: a CSV with the tree id column (--ground-key) and z")
     p.add_argument("--ground-key", default="tree_id", help="tree id column of --ground-table (default tree_id)")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT.csv", help="output CSV")
+    add_metric_options(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def add_metric_options(p: argparse.ArgumentParser) -> None:
+    """Add the metric definitions' options (``--multi-return``, ``--cbh-convention``) to ``p``."""
+    from vlsforest.metrics import CBH_CONVENTIONS, MULTI_RETURN_MODES
+
     p.add_argument(
         "--multi-return",
         choices=MULTI_RETURN_MODES,
@@ -52,45 +59,45 @@ def register(subparsers) -> argparse.ArgumentParser:
         default="paper",
         help="crown base height definition: the paper's text or the authors' script (default: paper)",
     )
-    p.set_defaults(func=run)
-    return p
 
 
-def run(args) -> int:
-    """Execute ``vlsforest metrics`` with parsed ``args``; return 0."""
-    from vlsforest.io.las import read_las
+def ground_table(path: Path, key: str) -> dict:
+    """Per-tree terrain heights ``{tree id: z}`` from a CSV with columns ``key`` and ``z``."""
+    import pandas as pd
+
+    if not path.is_file():
+        raise InputDataError(f"{path}: no such ground table")
+    gt = pd.read_csv(path)
+    if not {key, "z"} <= set(gt.columns):
+        raise InputDataError(f"{path}: needs columns {key!r} and 'z'")
+    if not gt["z"].map(math.isfinite).all():
+        raise InputDataError(f"{path}: non-finite ground heights")
+    return {int(k): float(z) for k, z in zip(gt[key], gt["z"])}
+
+
+def write_metrics(cloud, tree_field: str, ground, output: Path, *, source: str, multi_return: str = "pulse",
+                  cbh_convention: str = "paper", prog: str = "vlsforest metrics"):
+    """Compute the per-tree metrics of ``cloud`` and write them to ``output`` (fixed format).
+
+    ``ground`` is a terrain height or ``{tree id: z}``; with a mapping every tree it names gets a
+    row (NaN metrics where it has no point). Warnings of the metrics go to stderr once each,
+    prefixed with ``prog``. Returns the table.
+    """
     from vlsforest.metrics import cloud_metrics
 
-    if not math.isfinite(args.ground_z):
-        raise ConfigError(f"--ground-z: must be finite, got {args.ground_z}")
-    ground = args.ground_z
-    if args.ground_table is not None:
-        import pandas as pd
-
-        if not args.ground_table.is_file():
-            raise InputDataError(f"{args.ground_table}: no such ground table")
-        gt = pd.read_csv(args.ground_table)
-        if not {args.ground_key, "z"} <= set(gt.columns):
-            raise InputDataError(f"{args.ground_table}: needs columns {args.ground_key!r} and 'z'")
-        if not gt["z"].map(math.isfinite).all():
-            raise InputDataError(f"{args.ground_table}: non-finite ground heights")
-        ground = {int(k): float(z) for k, z in zip(gt[args.ground_key], gt["z"])}
-    cloud = read_las(args.input, allow_empty=args.ground_table is not None)
+    if tree_field not in cloud.attrs:
+        raise InputDataError(f"{source}: no tree-id field {tree_field!r} (fields: {', '.join(sorted(cloud.attrs))})")
     tree_ids = sorted(ground) if isinstance(ground, dict) else None
-    if args.tree_id not in cloud.attrs:
-        raise InputDataError(
-            f"{args.input}: no tree-id field {args.tree_id!r} (fields: {', '.join(sorted(cloud.attrs))})"
-        )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         df = cloud_metrics(
             cloud,
-            args.tree_id,
+            tree_field,
             ground_z=ground,
             tree_ids=tree_ids,
-            multi_return=args.multi_return,
-            cbh_convention=args.cbh_convention,
-            source=str(args.input),
+            multi_return=multi_return,
+            cbh_convention=cbh_convention,
+            source=source,
         )
     seen = set()
     for w in caught:
@@ -99,11 +106,26 @@ def run(args) -> int:
         msg = str(w.message)
         if msg not in seen:
             seen.add(msg)
-            print(f"vlsforest metrics: warning: {msg}", file=sys.stderr)
+            print(f"{prog}: warning: {msg}", file=sys.stderr)
     if df.empty:
-        print(f"vlsforest metrics: warning: {args.input}: no point has a tree id in {args.tree_id!r}", file=sys.stderr)
-    out = Path(args.output)
+        print(f"{prog}: warning: {source}: no point has a tree id in {tree_field!r}", file=sys.stderr)
+    out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out, index=False, float_format=FLOAT_FORMAT, na_rep="NaN", lineterminator="\n")
-    print(f"vlsforest metrics: {len(df)} trees -> {out}")
+    return df
+
+
+def run(args) -> int:
+    """Execute ``vlsforest metrics`` with parsed ``args``; return 0."""
+    from vlsforest.io.las import read_las
+
+    if not math.isfinite(args.ground_z):
+        raise ConfigError(f"--ground-z: must be finite, got {args.ground_z}")
+    ground = args.ground_z
+    if args.ground_table is not None:
+        ground = ground_table(args.ground_table, args.ground_key)
+    cloud = read_las(args.input, allow_empty=args.ground_table is not None)
+    df = write_metrics(cloud, args.tree_id, ground, args.output, source=str(args.input),
+                       multi_return=args.multi_return, cbh_convention=args.cbh_convention)
+    print(f"vlsforest metrics: {len(df)} trees -> {args.output}")
     return 0
