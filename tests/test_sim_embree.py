@@ -194,3 +194,15 @@ def test_voxel_cubes_go_to_embree_in_pieces_with_the_same_bits(monkeypatch):
     old._embree = None
     for a, b in zip(old.trace(o, d), new):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("pieces", [[], [(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))]])
+def test_empty_chunked_mesh_is_an_empty_geometry_keeping_later_ids(pieces):
+    """No pieces (or empty ones) still add one geometry, so a later mesh keeps its id (1)."""
+    sc = _embree.new_scene(False)
+    _embree.add_triangle_chunks(sc, 0, 0, iter(pieces))
+    v, f = _soup(seed=0)
+    _embree.add_triangles(sc, v, f)
+    o, d = _rays(20000)
+    hits = sc.run(o, d, output=1)
+    assert set(np.unique(hits["geomID"])) == {-1, 1}

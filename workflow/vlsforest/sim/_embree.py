@@ -124,9 +124,10 @@ def add_triangle_chunks(scene, n_vertices: int, n_faces: int, chunks) -> None:
     if lib is None or n_vertices == 0 or n_faces == 0:
         from embreex.mesh_construction import TriangleMesh
 
-        parts = list(chunks)
-        TriangleMesh(scene, np.concatenate([c[0] for c in parts]).astype(np.float32),
-                     np.concatenate([c[1] for c in parts]).astype(np.int32))
+        parts = list(chunks)  # an empty mesh (or no pieces) is still one geometry: ids stay in order
+        v = [np.asarray(c[0], np.float32).reshape(-1, 3) for c in parts] or [np.zeros((0, 3), np.float32)]
+        f = [np.asarray(c[1]).reshape(-1, 3) for c in parts] or [np.zeros((0, 3), np.int32)]
+        TriangleMesh(scene, np.concatenate(v), np.concatenate(f).astype(np.int32))
         return
     h = _scene_handle(scene)
     dev = lib.rtcGetSceneDevice(h)
