@@ -677,6 +677,14 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                            "--sim-config-json", "{plots: [", "--scenario", "uls", "-o", str(tmp_path / "o.json")],
                           capture_output=True, text=True)
     assert proc.returncode != 0 and "not valid JSON" in proc.stderr and "Traceback" not in proc.stderr
+    good = tmp_path / "good.yaml"
+    good.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c",
+                                                                       "radius": 0.3}}}))
+    proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
+                           "--sim-config", str(good), "--scenario", "uls", "--workers", "0",
+                           "-o", str(tmp_path / "o.json")], capture_output=True, text=True)
+    assert proc.returncode == 2 and "--workers must be ≥ 1, got 0" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "o.json").exists()
 
 
 # ------------------------------------------------------------------------------------ end to end
@@ -776,6 +784,8 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
     # resources a cluster can hold it to (attempt 1; doubled on a retry): 16 GB, 90 min
     job = (proc.stdout + proc.stderr).split("rule diagnose:")[1].split("\n\n")[0]
     assert "mem_mb=16000" in job and "runtime=90" in job, job
+    # the local profile runs it on one CPU (set-threads): it traces in its own process
+    assert "--workers 1 " in job, job
     # without region_margin_m the sim-config names no margin: the library's default applies
     del fine["diagnosis"]["region_margin_m"]
     path.write_text(yaml.safe_dump(fine))

@@ -28,4 +28,4 @@ rule diagnose:
     shell:
         "python -m vlsforest.cli diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
         "--write-sim-config {output.setup} --scenario {wildcards.scenario} -o {output.json} "
-        "--figure {output.figure} > {log} 2>&1"
+        "--figure {output.figure} --workers {threads} > {log} 2>&1"

@@ -28,6 +28,10 @@ def register(sub) -> None:
     p.add_argument("--scenario", required=True, choices=("als", "uls"))
     p.add_argument("-o", "--output", required=True, metavar="OUT.json")
     p.add_argument("--figure", default=None, metavar="PNG", help="also draw the residuals before/after")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the diagnosis' ray traces (default: the set-up's workers, else 2; "
+                        "1 traces in this process, without moving the hits between processes; the results do "
+                        "not depend on it)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -46,6 +50,12 @@ def run(args) -> int:
     else:
         source = args.sim_config
     setup = load_setup(source, real_dir=args.real, scenario=args.scenario)
+    if args.workers is not None:
+        if args.workers < 1:
+            from vlsforest.errors import ConfigError
+
+            raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
+        setup.workers = args.workers
     if args.write_sim_config:
         import yaml
 

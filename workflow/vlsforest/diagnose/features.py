@@ -224,13 +224,15 @@ def _ground_stats(xyz, line, cell=1.0):
     height = coef[:, 0]
     order = np.lexsort((cells[:, 1], cells[:, 0]))
     cells, height = cells[order], height[order]
-    diffs = []
+    # |height difference| of every pair of lines in a cell, for the cells of each line count m
     same = np.r_[True, np.any(cells[1:] != cells[:-1], axis=1), True]
     bounds = np.flatnonzero(same)
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        if b - a > 1:
-            h = height[a:b]
-            diffs.append(np.abs(np.subtract.outer(h, h))[np.triu_indices(b - a, 1)])
+    sizes = np.diff(bounds)
+    diffs = []
+    for m in np.unique(sizes[sizes > 1]):
+        first, second = np.triu_indices(m, 1)
+        h = height[bounds[:-1][sizes == m][:, None] + np.arange(m)]
+        diffs.append(np.abs(h[:, first] - h[:, second]).ravel())
     dz = float(np.median(np.concatenate(diffs))) if diffs else np.nan
     return sd, dz
 
