@@ -663,6 +663,11 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                                        "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
         with pytest.raises(ConfigError, match="realisations must be an integer ≥ 0"):
             load_setup(bad, real_dir=tmp_path)
+    for n in (0, -2, 1.5, True, "two"):  # the sim-config's own worker count, as --workers is checked
+        bad.write_text(yaml.safe_dump({"scenario": "uls", "workers": n,
+                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
+        with pytest.raises(ConfigError, match="workers must be an integer ≥ 1"):
+            load_setup(bad, real_dir=tmp_path)
     for m in (-1, "wide", None):
         bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c",
                                                                           "radius": 0.3, "margin": m}}}))

@@ -205,7 +205,10 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     nr = d.get("realisations", 3)
     if isinstance(nr, bool) or not isinstance(nr, int) or nr < 0:
         raise ConfigError(f"{path}: realisations must be an integer ≥ 0, got {nr!r}")
-    return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), int(d.get("workers", 2)),
+    workers = d.get("workers", 2)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"{path}: workers must be an integer ≥ 1, got {workers!r}")
+    return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), workers,
                  int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")),
                  metric=metric, beam_sample_quality=q, realisations=nr)
 
