@@ -328,6 +328,36 @@ def test_face_labels_reach_the_returns(tmp_path):
     assert np.array_equal(read_las(tmp_path / "l.laz").attrs["label"], p["label"])
 
 
+def test_face_labels_of_several_meshes_come_from_each_hit_face():
+    """Labels are looked up per geometry and face: meshes with, without and again with labels
+    (the flat label table's offsets), a plane (no labels) and rays that miss."""
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    labels = {0.0: [3, 4], 20.0: None, 40.0: [11, 12]}
+    for k, (x0, lab) in enumerate(labels.items()):
+        v = np.array([[x0, -10, 5 + k], [x0 + 10, -10, 5 + k], [x0 + 10, 10, 5 + k], [x0, 10, 5 + k]], float)
+        sc.add_mesh(2 + k, v, [[0, 1, 2], [0, 2, 3]], face_labels=None if lab is None else np.array(lab))
+    rng = np.random.default_rng(3)
+    xy = np.column_stack([rng.uniform(-5, 60, 4000), rng.uniform(-12, 12, 4000)])
+    o = np.column_stack([xy, np.full(len(xy), 20.0)])
+    d = np.tile([0.0, 0.0, -1.0], (len(xy), 1))
+    d[:200] = [0.0, 0.0, 1.0]  # upwards: no hit at all
+    t, part, _, label = sc.trace(o, d, with_labels=True)
+    want = np.zeros(len(xy), dtype=np.uint8)
+    for x0, lab in labels.items():
+        if lab is None:
+            continue
+        inside = (xy[:, 0] > x0) & (xy[:, 0] < x0 + 10) & (np.abs(xy[:, 1]) < 10)
+        below = (xy[:, 1] + 10) < 2 * (xy[:, 0] - x0)  # triangle [0, 1, 2]
+        want[inside & below] = lab[0]
+        want[inside & ~below] = lab[1]
+    want[:200] = 0
+    near_edge = np.abs((xy[:, 1] + 10) - 2 * (xy[:, 0] % 20)) < 1e-3
+    assert np.isinf(t[:200]).all() and (part[:200] == -1).all()
+    assert np.array_equal(label[~near_edge], want[~near_edge])
+    assert {3, 4, 11, 12} <= set(np.unique(label)) and (label == 0).sum() > 1000
+
+
 def test_region_traces_only_pulses_reaching_it():
     sc = Scene()
     sc.add_plane(1, 0.0, [-100, -100, 100, 100])

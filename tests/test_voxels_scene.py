@@ -329,6 +329,42 @@ def test_extract_reference_radius_and_nearest_tree():
     assert extract_simulated(sim, {51: 5, 52: 5, 81: 8}).tolist() == [5, 5, 0, 0, 8]
 
 
+def _labels_by_brute_force(trees: dict, xyz: np.ndarray, radius: float) -> np.ndarray:
+    """The rule of extract_reference from every tree's exact nearest distance (no shortcuts)."""
+    from scipy.spatial import cKDTree
+
+    ids = sorted(trees)
+    d = np.column_stack([cKDTree(trees[t]).query(xyz, k=1)[0] for t in ids])
+    d[d > radius] = np.inf
+    out = np.asarray(ids)[np.argmin(d, axis=1)]  # first minimum: the smaller id on ties
+    return np.where(np.isfinite(d.min(axis=1)), out, 0)
+
+
+@pytest.mark.parametrize("max_cells", [None, 1000])
+def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypatch, max_cells):
+    """Dense, touching and overlapping trees, points at the radius and exact ties: the cell
+    shortcuts of the labeller (and its fallback for trees without a grid) give the labels of the
+    exact distances."""
+    from vlsforest.extract import _TreeLabeller
+
+    if max_cells is not None:
+        monkeypatch.setattr(_TreeLabeller, "_MAX_CELLS", max_cells)
+    rng = np.random.default_rng(5)
+    trees = {t: rng.normal([1.2 * t, 0.0, 8.0], [0.5, 0.5, 2.0], (4000, 3)) for t in (7, 3, 5, 1)}
+    trees[11] = np.array([[0.0, 5.0, 1.0]])          # a one-point tree …
+    trees[12] = np.array([[0.4, 5.0, 1.0]])          # … and its twin 0.4 m away
+    xyz = np.vstack([rng.uniform([-2, -2, 2], [9, 2, 14], (30000, 3)),
+                     np.array([[0.2, 5.0, 1.0],      # equally far (0.2) from trees 11 and 12: 11
+                               [0.0, 5.3, 1.0],      # exactly at the radius of tree 11
+                               [0.0, 5.0, 1.31]])])  # just outside it
+    cloud = PointCloud(xyz, {"classification": np.full(len(xyz), 5, np.uint8)})
+    got = extract_reference(trees, cloud, 0.3)
+    want = _labels_by_brute_force(trees, xyz, 0.3)
+    assert np.array_equal(got, want)
+    assert got[-3:].tolist() == [11, 11, 0]
+    assert {1, 3, 5, 7} <= set(np.unique(got)) and (got == 0).sum() > 1000
+
+
 def test_extract_reference_leaves_ground_out_so_cbh_is_the_crowns():
     """A stem foot's ground ring within 0.5 m would make the lowest slice > 1.5 m wide (CBH 0.05 m)."""
     from vlsforest.metrics import tree_metrics

@@ -181,32 +181,67 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float,
     return _TreeLabeller(tree_points, radius)(cloud, exclude_classes)
 
 
+_NEAR, _INNER = 1, 2  # bits of a cell's code (as vlsforest._treecells.NEAR, INNER)
+
+
 class _TreeLabeller:
     """:func:`extract_reference` with the trees' search structures built once, for labelling
-    many clouds against the same TLS trees (the diagnosis labels every simulation it runs)."""
+    many clouds against the same TLS trees (the diagnosis labels every simulation it runs).
+
+    Besides a KD-tree, each tree has a grid of cubic cells of side ``radius / 2`` over its box:
+    cells holding one of its TLS points (*inner*: any point there is within
+    ``radius / 2 · √3 < radius`` of the tree) and those cells grown by 3 cells each way (*near*:
+    a point outside them is farther than ``1.5 · radius`` from every TLS point along one axis).
+    A point near exactly one tree and inside its inner cells is that tree's without a distance
+    query; a point near none is no tree's; only the rest (near two trees, or near one but not in
+    its inner cells) is queried, tree by tree in ascending id as before. The labels are the
+    ones the queries alone give (``tests/test_voxels_scene.py``), with most queries saved. A tree
+    whose grid would exceed :attr:`_MAX_CELLS` cells (a box tens of metres wide, e.g. a stray
+    point) has none: all points in its box are queried.
+    """
+
+    _MAX_CELLS = 16_000_000  # a tree whose grid would be larger has none (its points are all queried)
 
     def __init__(self, tree_points: dict, radius: float, workers: int = 1):
+        from scipy.ndimage import maximum_filter
         from scipy.spatial import cKDTree
 
         if not (np.isfinite(radius) and radius > 0):
             raise ConfigError(f"radius must be > 0, got {radius!r}")
         self.radius, self.workers = float(radius), int(workers)
-        self.trees = []  # (id, box low, box high, KD-tree) in ascending id order
+        self.cell = self.radius / 2
+        self.trees = []  # (id, box low, box high, KD-tree, cell codes) in ascending id order
         for tid in sorted(tree_points):
             pts = np.asarray(tree_points[tid], dtype=np.float64).reshape(-1, 3)
             if len(pts) == 0:
                 raise InputDataError(f"tree {tid}: no TLS points to extract a reference cloud with")
             if not np.isfinite(pts).all():
                 raise InputDataError(f"tree {tid}: TLS points contain NaN coordinates")
-            self.trees.append((tid, pts.min(axis=0) - radius, pts.max(axis=0) + radius, cKDTree(pts)))
+            lo, hi = pts.min(axis=0) - radius, pts.max(axis=0) + radius
+            shape = tuple(int(n) for n in np.floor((hi - lo) / self.cell).astype(np.int64) + 1)
+            if np.prod(shape, dtype=np.float64) > self._MAX_CELLS:  # a huge box: every point is asked
+                self.trees.append((tid, lo, hi, cKDTree(pts), None))
+                continue
+            inner = np.zeros(shape, dtype=np.uint8)
+            ijk = self._cells(pts, lo, shape)
+            inner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
+            near = maximum_filter(inner, size=7, mode="constant", cval=0)  # Chebyshev distance ≤ 3 cells
+            codes = near * _NEAR + inner * _INNER
+            self.trees.append((tid, lo, hi, cKDTree(pts), codes))
+
+    def _cells(self, xyz: np.ndarray, lo: np.ndarray, shape: tuple) -> np.ndarray:
+        """Cell index (k, 3) of points inside a tree's box (clipped to the grid)."""
+        ijk = np.floor((xyz - lo) / self.cell).astype(np.int64)
+        return np.minimum(np.maximum(ijk, 0), np.array(shape) - 1)
 
     def __call__(self, cloud: PointCloud, exclude_classes=NOT_TREE_CLASSES, columns=None) -> np.ndarray:
         """Tree id per point of ``cloud`` (0 = none); see :func:`extract_reference`. ``columns``:
         a :class:`_ColumnIndex` of the cloud's x, y if one is at hand."""
+        from vlsforest._treecells import near_points
+
         radius = self.radius
         n = len(cloud)
         label = np.zeros(n, dtype=np.int64)
-        best = np.full(n, np.inf)
         if n == 0:
             return label
         xyz = cloud.xyz
@@ -217,18 +252,30 @@ class _TreeLabeller:
         lo, hi = xyz.min(axis=0), xyz.max(axis=0)
         if columns is None:
             columns = _ColumnIndex(xyz[:, :2])  # a tree's box then reads only the points of its columns
-        for tid, tlo, thi, kd in self.trees:
+        xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+        n_near = np.zeros(n, dtype=np.int32)  # trees the point is near to
+        in_inner = np.zeros(n, dtype=bool)    # inside the inner cells of (one of) them
+        inner_tree = np.zeros(n, dtype=np.int64)
+        near_points_of = []                   # per tree: the points near it
+        no_codes = np.zeros((1, 1, 1), dtype=np.uint8)
+        for tid, tlo, thi, kd, codes in self.trees:
             if np.any(thi < lo) or np.any(tlo > hi):
                 continue
             near = columns.box(tlo[0], tlo[1], thi[0], thi[1])
-            p = xyz[near]
-            inside = eligible[near]
-            for k in range(3):  # column by column: a reduction along rows of 3 is slow in numpy
-                inside &= (p[:, k] >= tlo[k]) & (p[:, k] <= thi[k])
-            cand = near[inside]
+            out = np.empty(len(near), dtype=np.int64)
+            k = near_points(xyz, near, eligible, tlo, thi, self.cell, no_codes if codes is None else codes,
+                            codes is not None, tid, n_near, in_inner, inner_tree, out)
+            if k:
+                near_points_of.append((tid, kd, out[:k]))
+        sure = (n_near == 1) & in_inner
+        label[sure] = inner_tree[sure]
+        ask = (n_near >= 2) | ((n_near == 1) & ~in_inner)
+        best = np.full(n, np.inf)
+        for tid, kd, idx in near_points_of:
+            cand = idx[ask[idx]]
             if len(cand) == 0:
                 continue
-            d, _ = kd.query(p[inside], k=1, distance_upper_bound=radius, workers=self.workers)
+            d, _ = kd.query(xyz[cand], k=1, distance_upper_bound=radius, workers=self.workers)
             better = (d <= radius) & (d < best[cand])
             label[cand[better]] = tid
             best[cand[better]] = d[better]

@@ -412,7 +412,7 @@ class Scene:
                     labels.append(None)
         self._embree = sc
         self._embree_parts = np.asarray(parts, dtype=np.int32)
-        self._embree_labels = labels
+        self._embree_labels = _label_table(labels)
 
     @property
     def has_labels(self) -> bool:
@@ -540,13 +540,8 @@ class Scene:
         label = np.zeros(n, dtype=np.uint8) if with_labels else None
         hit = gid >= 0 if with_labels else None
         if with_labels and hit.any():
-            hidx = np.flatnonzero(hit)
-            g = gid[hit]
-            prim = res["primID"][hit]
-            for k, lab in enumerate(self._embree_labels):
-                if lab is not None:
-                    sel = g == k
-                    label[hidx[sel]] = lab[prim[sel]]
+            offsets, flat = self._embree_labels
+            _hit_labels(gid, res["primID"], offsets, flat, label)
         if self.grids:
             o, d = world if world is not None else (o32.astype(np.float64) + self._shift, d32.astype(np.float64))
             self._trace_grids(o, d, t, part, cos_inc, label)
@@ -596,6 +591,36 @@ class Scene:
 
 
 # ---------------------------------------------------------------------- helpers
+def _label_table(labels: list) -> tuple[np.ndarray, np.ndarray]:
+    """Per-face labels of the Embree geometries as one flat table.
+
+    Returns ``(offsets, flat)``: geometry ``g``'s face ``p`` has label ``flat[offsets[g] + p]``;
+    ``offsets[g]`` is −1 for a geometry without labels (its hits keep label 0).
+    """
+    offsets = np.full(len(labels), -1, dtype=np.int64)
+    chunks = []
+    start = 0
+    for g, lab in enumerate(labels):
+        if lab is not None:
+            offsets[g] = start
+            chunks.append(np.asarray(lab, dtype=np.uint8))
+            start += len(lab)
+    flat = np.concatenate(chunks) if chunks else np.zeros(0, dtype=np.uint8)
+    return offsets, flat
+
+
+@numba.njit(cache=True)
+def _hit_labels(gid, prim, offsets, flat, label):
+    """Label of each hit from :func:`_label_table` (in place; rays without a hit or on a geometry
+    without labels keep theirs), one pass instead of one pass per geometry."""
+    for i in range(gid.shape[0]):
+        g = gid[i]
+        if g >= 0:
+            o = offsets[g]
+            if o >= 0:
+                label[i] = flat[o + prim[i]]
+
+
 @numba.njit(cache=True)
 def _embree_hits(tfar, gid, ng, d, parts, t, part, cos_inc):
     """Embree's answer as range (inf: no hit), scene part (−1: none) and |cos| of the incidence
