@@ -340,15 +340,17 @@ def _labels_by_brute_force(trees: dict, xyz: np.ndarray, radius: float) -> np.nd
     return np.where(np.isfinite(d.min(axis=1)), out, 0)
 
 
-@pytest.mark.parametrize("max_cells", [None, 1000])
-def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypatch, max_cells):
+@pytest.mark.parametrize("max_cells, max_total", [(None, None), (1000, None), (None, 150000)])
+def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypatch, max_cells, max_total):
     """Dense, touching and overlapping trees, points at the radius and exact ties: the cell
-    shortcuts of the labeller (and its fallback for trees without a grid) give the labels of the
-    exact distances."""
+    shortcuts of the labeller (and its fallback for trees without a grid: every tree's box too
+    large, or the memory budget spent after some) give the labels of the exact distances."""
     from vlsforest.extract import _TreeLabeller
 
     if max_cells is not None:
         monkeypatch.setattr(_TreeLabeller, "_MAX_CELLS", max_cells)
+    if max_total is not None:
+        monkeypatch.setattr(_TreeLabeller, "_MAX_TOTAL_CELLS", max_total)
     rng = np.random.default_rng(5)
     trees = {t: rng.normal([1.2 * t, 0.0, 8.0], [0.5, 0.5, 2.0], (4000, 3)) for t in (7, 3, 5, 1)}
     trees[11] = np.array([[0.0, 5.0, 1.0]])          # a one-point tree …
@@ -358,6 +360,9 @@ def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypat
                                [0.0, 5.3, 1.0],      # exactly at the radius of tree 11
                                [0.0, 5.0, 1.31]])])  # just outside it
     cloud = PointCloud(xyz, {"classification": np.full(len(xyz), 5, np.uint8)})
+    lab = _TreeLabeller(trees, 0.3)
+    with_grid = [tid for tid, *_, codes in lab.trees if codes is not None]
+    assert len(with_grid) == {(None, None): 6, (1000, None): 2, (None, 150000): 4}[(max_cells, max_total)]
     got = extract_reference(trees, cloud, 0.3)
     want = _labels_by_brute_force(trees, xyz, 0.3)
     assert np.array_equal(got, want)

@@ -197,10 +197,12 @@ class _TreeLabeller:
     its inner cells) is queried, tree by tree in ascending id as before. The labels are the
     ones the queries alone give (``tests/test_voxels_scene.py``), with most queries saved. A tree
     whose grid would exceed :attr:`_MAX_CELLS` cells (a box tens of metres wide, e.g. a stray
-    point) has none: all points in its box are queried.
+    point), or the trees after the grids reach :attr:`_MAX_TOTAL_CELLS` together, have none: all
+    points in their boxes are queried.
     """
 
     _MAX_CELLS = 16_000_000  # a tree whose grid would be larger has none (its points are all queried)
+    _MAX_TOTAL_CELLS = 256_000_000  # the grids of all trees together (one byte per cell)
 
     def __init__(self, tree_points: dict, radius: float, workers: int = 1):
         from scipy.ndimage import maximum_filter
@@ -211,6 +213,7 @@ class _TreeLabeller:
         self.radius, self.workers = float(radius), int(workers)
         self.cell = self.radius / 2
         self.trees = []  # (id, box low, box high, KD-tree, cell codes) in ascending id order
+        budget = self._MAX_TOTAL_CELLS
         for tid in sorted(tree_points):
             pts = np.asarray(tree_points[tid], dtype=np.float64).reshape(-1, 3)
             if len(pts) == 0:
@@ -219,9 +222,11 @@ class _TreeLabeller:
                 raise InputDataError(f"tree {tid}: TLS points contain NaN coordinates")
             lo, hi = pts.min(axis=0) - radius, pts.max(axis=0) + radius
             shape = tuple(int(n) for n in np.floor((hi - lo) / self.cell).astype(np.int64) + 1)
-            if np.prod(shape, dtype=np.float64) > self._MAX_CELLS:  # a huge box: every point is asked
+            cells = np.prod(shape, dtype=np.float64)
+            if cells > self._MAX_CELLS or cells > budget:  # a huge box, or memory spent: every point is asked
                 self.trees.append((tid, lo, hi, cKDTree(pts), None))
                 continue
+            budget -= cells
             inner = np.zeros(shape, dtype=np.uint8)
             ijk = self._cells(pts, lo, shape)
             inner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
