@@ -181,9 +181,6 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float,
     return _TreeLabeller(tree_points, radius)(cloud, exclude_classes)
 
 
-_NEAR, _INNER = 1, 2  # bits of a cell's code (as vlsforest._treecells.NEAR, INNER)
-
-
 class _TreeLabeller:
     """:func:`extract_reference` with the trees' search structures built once, for labelling
     many clouds against the same TLS trees (the diagnosis labels every simulation it runs).
@@ -208,6 +205,8 @@ class _TreeLabeller:
         from scipy.ndimage import maximum_filter
         from scipy.spatial import cKDTree
 
+        from vlsforest._treecells import INNER, NEAR
+
         if not (np.isfinite(radius) and radius > 0):
             raise ConfigError(f"radius must be > 0, got {radius!r}")
         self.radius, self.workers = float(radius), int(workers)
@@ -231,7 +230,7 @@ class _TreeLabeller:
             ijk = self._cells(pts, lo, shape)
             inner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
             near = maximum_filter(inner, size=7, mode="constant", cval=0)  # Chebyshev distance ≤ 3 cells
-            codes = near * _NEAR + inner * _INNER
+            codes = near * NEAR + inner * INNER
             self.trees.append((tid, lo, hi, cKDTree(pts), codes))
 
     def _cells(self, xyz: np.ndarray, lo: np.ndarray, shape: tuple) -> np.ndarray:
@@ -276,7 +275,7 @@ class _TreeLabeller:
                 near_points_of.append((tid, kd, out[:k]))
         sure = (n_near == 1) & in_inner
         label[sure] = inner_tree[sure]
-        ask = (n_near >= 2) | ((n_near == 1) & ~in_inner)
+        ask = (n_near > 0) & ~sure
         best = np.full(n, np.inf)
         for tid, kd, idx in near_points_of:
             cand = idx[ask[idx]]

@@ -538,8 +538,7 @@ class Scene:
         cos_inc = np.empty(n)
         _embree_hits(res["tfar"], gid, res["Ng"], d32, self._embree_parts, t, part, cos_inc)
         label = np.zeros(n, dtype=np.uint8) if with_labels else None
-        hit = gid >= 0 if with_labels else None
-        if with_labels and hit.any():
+        if with_labels:
             offsets, flat = self._embree_labels
             _hit_labels(gid, res["primID"], offsets, flat, label)
         if self.grids:
