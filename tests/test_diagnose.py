@@ -1405,11 +1405,13 @@ def test_the_diagnosis_widens_a_fits_ci_by_the_larger_of_disagreement_and_bias_a
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(monkeypatch, seed):
     """Trajectory noise: the recording is one draw of the process (amplitude 1.25 here), the
-    simulation another (1.0), so the fit lands at σ · 1.25, and the bootstrap over trees — which
-    sees neither draw's scatter — misses σ. Three further draws (amplitudes 1.3, 0.8, 1.1) each
-    fit at the fitted value × their amplitude, exactly in this linear stand-in; the four draws'
-    relative SD × √2 (the fit's error is the ratio of two draws) widens the CI, which then holds
-    σ. Without further draws the CI is that of the trees and the observables' disagreement."""
+    simulation another (1.0), so draw 0's fit lands at σ · 1.25, and the bootstrap over trees —
+    which sees neither draw's scatter — misses σ. Three further draws (amplitudes 1.3, 0.8, 1.1)
+    each fit at that value × their amplitude, exactly in this linear stand-in. The estimate is
+    matched with the four draws' mean amplitude (1.05): σ · 1.25 / 1.05. The draws' relative SD
+    × √(1 + 1/4) (the recording's draw and the mean of four simulated ones) widens the CI, moved
+    with the estimate, which then holds σ. Without further draws the estimate is draw 0's and the
+    CI that of the trees and the observables' disagreement."""
     from vlsforest.diagnose import core
 
     hidden = {"trajectory_noise": {"position_sigma_m": 0.08}}
@@ -1417,30 +1419,50 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=seed, draws=draws), seed=seed)
     eff = rep["effects"][0]
     assert eff["name"] == "trajectory_noise" and eff["accepted"], rep["verdict"]
-    x = eff["parameters"]["position_sigma_m"]
-    assert x == pytest.approx(0.08 * 1.25, rel=0.15)
     sc = eff["realisation_scatter"]
-    assert sc["n"] == 3 and sc["fitted"] == pytest.approx([x * 1.3, x * 0.8, x * 1.1], rel=1e-9)
+    x0, x = sc["draw0_fit"], eff["parameters"]["position_sigma_m"]
+    assert x0 == pytest.approx(0.08 * 1.25, rel=0.15)
+    assert sc["n"] == 3 and sc["fitted"] == pytest.approx([x0 * 1.3, x0 * 0.8, x0 * 1.1], rel=1e-9)
     c = np.array([1.0, 1.3, 0.8, 1.1])  # the four draws' amplitudes relative to draw 0's
-    assert sc["relative_sd"] == pytest.approx(np.sqrt(2) * c.std(ddof=1) / c.mean(), rel=1e-9)
+    assert sc["mean_amplitude"] == pytest.approx(c.mean()) and x == pytest.approx(x0 / c.mean(), rel=1e-9)
+    assert sc["fitted_mean"] == x and rep["model"]["trajectory_noise"]["position_sigma_m"] == x0  # simulated: draw 0's
+    assert sc["relative_sd_one_draw"] == pytest.approx(c.std(ddof=1) / c.mean(), rel=1e-9)
+    assert sc["relative_sd"] == pytest.approx(np.sqrt(1.25) * c.std(ddof=1) / c.mean(), rel=1e-9)
     trees, ci = eff["ci95_trees"]["position_sigma_m"], eff["ci95"]["position_sigma_m"]
-    # without further draws: the CI of the trees and the observables' disagreement, no draw simulated
+    # without further draws: draw 0's estimate, the CI of the trees and the observables' disagreement
     study = _LinearStudy(hidden, seed=seed, draws=draws)
     monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
     rep0 = core.diagnose(core.Setup(scenario="uls", plots=[], seed=seed, realisations=0), log=lambda m: None)
     eff0 = rep0["effects"][0]
     ci0 = eff0["ci95"]["position_sigma_m"]
-    assert eff0["parameters"] == eff["parameters"] and "realisation_scatter" not in eff0
+    assert eff0["parameters"]["position_sigma_m"] == x0 and "realisation_scatter" not in eff0
     assert not any('"realisation"' in k for k in study.simulated)
     assert ci0[0] <= trees[0] and ci0[1] >= trees[1]
     assert not trees[0] <= 0.08 <= trees[1]  # the trees' CI misses σ …
     assert ci[0] <= 0.08 <= ci[1]            # … with the draws' scatter the CI holds it
     assert f"trajectory_noise [position_sigma_m = {x:.3g}, 95 % CI {ci[0]:.3g}–{ci[1]:.3g}]" in rep["verdict"]
-    half = 1.96 * sc["relative_sd"] * x
-    assert ci == pytest.approx([x - np.hypot(x - ci0[0], half), x + np.hypot(ci0[1] - x, half)])
+    half, k = 1.96 * sc["relative_sd"] * x, x / x0
+    assert ci == pytest.approx([x - np.hypot(x - k * ci0[0], half), x + np.hypot(k * ci0[1] - x, half)])
     # a candidate with no random draws gets none
     rep = _run_logic(monkeypatch, _LinearStudy({"range_noise": {"sigma_m": 0.06}}, seed=seed), seed=seed)
     assert "realisation_scatter" not in rep["effects"][0]
+
+
+def test_matching_the_mean_of_the_draws_removes_the_simulations_share_of_the_scatter(monkeypatch):
+    """A weak simulated draw 0 (amplitude 0.7) against a recording of average amplitude (1.0):
+    draw 0 alone needs σ / 0.7 (+43 %) to reproduce the recording; matched with the mean of the
+    four simulated draws (0.7, 1.2, 1.0, 1.1: mean 1.0) the estimate is σ again."""
+    hidden = {"trajectory_noise": {"position_sigma_m": 0.08}}
+    draws = {"real": 1.0, 0: 0.7, 1: 1.2, 2: 1.0, 3: 1.1}
+    rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=0, draws=draws), seed=0)
+    eff = rep["effects"][0]
+    assert eff["name"] == "trajectory_noise" and eff["accepted"], rep["verdict"]
+    sc = eff["realisation_scatter"]
+    assert sc["draw0_fit"] == pytest.approx(0.08 / 0.7, rel=0.08)
+    assert sc["mean_amplitude"] == pytest.approx(1.0 / 0.7, rel=1e-9)
+    assert eff["parameters"]["position_sigma_m"] == pytest.approx(0.08, rel=0.08)
+    lo, hi = eff["ci95"]["position_sigma_m"]
+    assert lo <= 0.08 <= hi
 
 
 def test_a_further_draw_of_trajectory_noise_changes_only_the_surveys_seed():

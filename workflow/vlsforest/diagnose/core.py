@@ -28,8 +28,9 @@ Steps (see the README section "Diagnosis"):
    are named in the report and the verdict. For an accepted candidate whose simulation is one
    draw of a random process with few independent samples over a plot (trajectory noise:
    :attr:`.library.Candidate.realisations`), further draws are simulated at the fitted value and
-   each is fitted as if it were the recording; their scatter — which the recording's own draw
-   has too — widens the CI. So do the voters' own systematic errors: the larger of their
+   each is fitted as if it were the recording: the estimate is matched with the draws' mean
+   amplitude instead of draw 0's alone (the simulation's draw then adds little scatter), and
+   the scatter that remains — the recording's own draw's — widens the CI. So do the voters' own systematic errors: the larger of their
    disagreement beyond their sampling variances (:func:`.stats.crossing_votes`) and the bias
    allowance, which gives each voter a bias as large, in across-tree SDs, as those the fit leaves
    in the observables it did not use (:func:`.stats.bias_scale`; it covers a fit that rests on one
@@ -38,7 +39,9 @@ Steps (see the README section "Diagnosis"):
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the
    fitted values with bootstrap CIs, the minimum detectable effect per candidate and the cost;
-   ``model`` (the accepted candidates' values, as simulated) and ``beam_fwhm_mrad`` (the beam
+   ``model`` (the accepted candidates' values, as simulated: for a random process draw 0's
+   fit, ``realisation_scatter.draw0_fit``, while its effect's ``parameters`` hold the estimate
+   matched with the mean of the draws) and ``beam_fwhm_mrad`` (the beam
    they make, major and minor divergence at FWHM).
 """
 
@@ -735,17 +738,25 @@ def _widened(ci: list, x: float, sd: float, log: bool, lo: float, hi: float) -> 
 
 def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: dict, curve: tuple,
                          w: np.ndarray, n: int) -> dict:
-    """The scatter of a random candidate's fit between draws of its process.
+    """The scatter of a random candidate's fit between draws of its process, and the fit
+    averaged over the draws.
 
     Draws 1 … ``n`` of the process are simulated at the fitted value ``x`` (``allv``); each is
     taken as if it were the recording and fitted on the all-tree grid ``curve`` (draw 0's
     simulations) the way the diagnosis fits (:func:`.stats.robust_fit`, weights ``w``). Draw r
     fits at ``x · a_r / a_0``, ``a`` being the draws' amplitudes (how strongly each moves the
     observables), so ``c = (1, x_1 / x, …, x_n / x)`` are ``n + 1`` draws' amplitudes up to one
-    factor, and their relative SD (``ddof = 1``) is that of one draw. The fit's own error is
-    ``a_real / a_0`` — two draws, the recording's and the simulation's — so its relative SD is
-    ``√2`` times that (``relative_sd``). Using draw 0 as one of the samples keeps the estimate
-    from depending on whether draw 0 happened to be a weak or a strong one.
+    factor, and their relative SD (``ddof = 1``) is that of one draw (``relative_sd_one_draw``).
+    Using draw 0 as one of the samples keeps this from depending on whether draw 0 happened to be
+    a weak or a strong one.
+
+    Draw 0's fit ``x`` matches the recording's draw with the simulation's draw 0: it is
+    ``σ · a_real / a_0`` and carries both draws' scatter. Matched with the mean amplitude of
+    the ``n + 1`` simulated draws instead, the estimate is ``x / mean(c)`` (``fitted_mean``):
+    the simulation's part of the scatter shrinks by ``√(n + 1)``, the recording's own draw stays,
+    so its relative SD is ``relative_sd_one_draw · √(1 + 1 / (n + 1))`` (``relative_sd``; the
+    fit of draw 0 alone had ``√2`` times that of one draw). ``draw0_fit`` keeps ``x``, the value
+    draw 0 needs to reproduce the recording, which the diagnosis goes on simulating.
     """
     par = cand.params[0]
     g, Ds = curve
@@ -757,8 +768,12 @@ def _realisation_scatter(study: _Study, base: dict, cand: lib.Candidate, allv: d
         # draw r's simulation as the recording: (real − sim_0(g)) − (real − sim_r(x)) = sim_r(x) − sim_0(g)
         vals.append(st.robust_fit(g, [D - Dr for D in Ds], w, lo, hi, par.log and lo > 0))
     c = np.r_[1.0, np.asarray(vals) / x] if x > 0 else np.array([np.nan])
-    rel = float(np.sqrt(2.0) * np.std(c, ddof=1) / np.mean(c)) if len(c) > 1 and np.mean(c) > 0 else float("nan")
-    return {"n": n, "fitted": [float(v) for v in vals], "relative_sd": rel}
+    ok = len(c) > 1 and np.isfinite(c).all() and np.mean(c) > 0
+    one = float(np.std(c, ddof=1) / np.mean(c)) if ok else float("nan")
+    mean_x = float(np.clip(x / np.mean(c), lo, hi)) if ok else float(x)
+    return {"n": n, "fitted": [float(v) for v in vals], "draw0_fit": float(x),
+            "mean_amplitude": float(np.mean(c)) if ok else float("nan"), "fitted_mean": mean_x,
+            "relative_sd_one_draw": one, "relative_sd": float(one * np.sqrt(1.0 + 1.0 / len(c)))}
 
 
 def diagnose(setup: Setup, log=None, work_dir=None) -> dict:
@@ -888,13 +903,21 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
             f"{'; worse: ' + ', '.join(worse) if worse else ''} → {'accepted' if ok else 'rejected'}")
         if ok and cand.realisations and setup.realisations > 0:
             sc = _realisation_scatter(study, base, cand, allv, curve, wfit, setup.realisations)
-            x = cand.coords(allv)[cand.params[0].name]
-            blo, bhi = cand.bounds(study.survey)[cand.params[0].name]
-            if np.isfinite(sc["relative_sd"]):  # the CI so far and the draws' scatter, in quadrature
-                effects[-1]["ci95"] = {cand.params[0].name: _widened(ci, x, sc["relative_sd"] * x, False, blo, bhi)}
+            pn = cand.params[0].name
+            blo, bhi = cand.bounds(study.survey)[pn]
+            if np.isfinite(sc["relative_sd"]):
+                # the estimate matched with the draws' mean amplitude; the CI so far (draw 0's, of
+                # which every fit scales alike) moved with it and widened by the scatter that
+                # remains (the recording's draw and the mean of the simulated ones), in quadrature
+                x, k = sc["fitted_mean"], sc["fitted_mean"] / sc["draw0_fit"]
+                effects[-1]["parameters"] = {kk: float(v) for kk, v in
+                                             cand.values(cand.current(study.survey, base), {pn: x}).items()}
+                moved = [float(np.clip(v * k, blo, bhi)) for v in ci]
+                effects[-1]["ci95"] = {pn: _widened(moved, x, sc["relative_sd"] * x, False, blo, bhi)}
             effects[-1]["realisation_scatter"] = sc
-            log(f"  {sc['n']} further draws of its process fit {', '.join(f'{v:.3g}' for v in sc['fitted'])} "
-                f"(relative SD {sc['relative_sd']:.2f}); CI {effects[-1]['ci95'][cand.params[0].name]}")
+            log(f"  {sc['n']} further draws of its process fit {', '.join(f'{v:.3g}' for v in sc['fitted'])}; "
+                f"matched with the draws' mean {pn} = {sc['fitted_mean']:.3g} (draw 0 alone: {sc['draw0_fit']:.3g}, "
+                f"relative SD {sc['relative_sd']:.2f}); CI {effects[-1]['ci95'][pn]}")
         if not ok:
             break
         accepted.append(cand.name)
