@@ -130,3 +130,26 @@ def test_region_margin_is_widened_to_the_scene_cells(demo, capsys):
     a, b = laspy.read(outs["0"]), laspy.read(outs["0.354"])
     assert len(a.points) == len(b.points) > 0
     assert len(laspy.read(outs["1"]).points) >= len(a.points)
+
+
+@pytest.mark.parametrize("workers", ["0", "-2"])
+def test_workers_below_one_exit_2(demo, capsys, workers):
+    """``--workers`` 0 or negative is an error, not "all CPUs" in disguise; the API says so too."""
+    from vlsforest.errors import ConfigError
+    from vlsforest.sim import Scene, load_survey, simulate
+
+    out = demo / "w.laz"
+    rc = main(["simulate", str(demo / "scene" / "scene.yaml"), str(demo / "survey.yaml"), "-o", str(out),
+               "--quiet", "--workers", workers])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"--workers must be ≥ 1, got {workers}" in err and "Traceback" not in err
+    assert not out.exists()
+    scene, survey = Scene.from_yaml(demo / "scene" / "scene.yaml"), load_survey(demo / "survey.yaml")
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="workers must be an integer ≥ 1"):
+            simulate(scene, survey, workers=bad)
+    cfg = demo / "synth.yaml"
+    cfg.write_text(yaml.safe_dump({"forest": {"preset": "quick"}}))
+    assert main(["synth", str(cfg), "-o", str(demo / "forest"), "--workers", workers]) == 2
+    err = capsys.readouterr().err
+    assert f"--workers must be ≥ 1, got {workers}" in err and not (demo / "forest").exists()

@@ -16,7 +16,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: the survey's seed, else 0)")
     p.add_argument("--pulses", default=None, help="also write the per-pulse table (.npz or .csv)")
     p.add_argument("--hits", default=None, help="also write the sub-ray hits (.npz) for 'vlsforest detect'")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (default: all CPUs)")
+    p.add_argument("--workers", type=int, default=None, help="worker processes, ≥ 1 (default: all CPUs)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--timing", default=None, help="also write the run's timings and counts as JSON")
     p.add_argument("--region", type=float, nargs=4, default=None, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
@@ -36,6 +36,10 @@ def run(args) -> int:
         from vlsforest.errors import ConfigError
 
         raise ConfigError(f"--region-margin must be ≥ 0 (m), got {args.region_margin}")
+    if args.workers is not None and args.workers < 1:
+        from vlsforest.errors import ConfigError
+
+        raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     region = args.region

@@ -26,7 +26,8 @@ def register(sub) -> None:
                    help="write only the --plots' own folders (plots/<plot>/, truth/<plot>/), not the forest's "
                         "truth/trees.csv and settings: one workflow job per plot; `vlsforest collect truth` "
                         "writes those afterwards (the same bytes as one call for all plots)")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None,
+                   help="CPUs to use, ≥ 1 (default: one plot at a time, its simulations on all CPUs)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -56,6 +57,8 @@ def run(args) -> int:
         where = str(path)
     if not isinstance(cfg, dict):
         raise ConfigError(f"{where}: the config must be a mapping")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
     physics = load_recording_physics(args.recording_physics) if args.recording_physics else None
     plots = [p.strip() for p in args.plots.split(",") if p.strip()] if args.plots else None

@@ -549,6 +549,8 @@ def _run_blocks(job: _Job, workers, progress, t0):
         job.raw_embree = job._raw_embree()
     if hasattr(scene, "prepare"):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking
+    if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 1):
+        raise ConfigError(f"workers must be an integer ≥ 1 (None: all CPUs), got {workers!r}")
     requested = workers or os.cpu_count() or 1
     workers = min(requested, max(n_blocks, 1))
     _JOB = job
@@ -602,8 +604,8 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     seed : int, optional
         Seed of the range noise; defaults to the survey's ``seed``.
     workers : int, optional
-        Worker processes (default: number of CPUs, at most the number of blocks). With 1 the
-        survey runs in this process on one CPU (the voxel-grid kernel without threads too).
+        Worker processes, ≥ 1 (default None: number of CPUs, at most the number of blocks). With
+        1 the survey runs in this process on one CPU (the voxel-grid kernel without threads too).
     keep_hits : bool
         Also return every sub-ray hit (for :func:`redetect`).
     keep_pulses : bool
