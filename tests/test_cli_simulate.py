@@ -145,7 +145,7 @@ def test_workers_below_one_exit_2(demo, capsys, workers):
     assert rc == 2 and f"--workers must be ≥ 1, got {workers}" in err and "Traceback" not in err
     assert not out.exists()
     scene, survey = Scene.from_yaml(demo / "scene" / "scene.yaml"), load_survey(demo / "survey.yaml")
-    for bad in (0, -1, 1.5, True):
+    for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(ConfigError, match="workers must be an integer ≥ 1"):
             simulate(scene, survey, workers=bad)
     cfg = demo / "synth.yaml"

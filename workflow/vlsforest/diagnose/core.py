@@ -30,11 +30,12 @@ Steps (see the README section "Diagnosis"):
    :attr:`.library.Candidate.realisations`), further draws are simulated at the fitted value and
    each is fitted as if it were the recording: the estimate is matched with the draws' mean
    amplitude instead of draw 0's alone (the simulation's draw then adds little scatter), and
-   the scatter that remains — the recording's own draw's — widens the CI. So do the voters' own systematic errors: the larger of their
-   disagreement beyond their sampling variances (:func:`.stats.crossing_votes`) and the bias
-   allowance, which gives each voter a bias as large, in across-tree SDs, as those the fit leaves
-   in the observables it did not use (:func:`.stats.bias_scale`; it covers a fit that rests on one
-   observable, whose bias no disagreement shows); ``ci95_trees`` is the bootstrap over trees alone.
+   the scatter that remains — the recording's own draw's — widens the CI. So do the voters'
+   own systematic errors: the larger of their disagreement beyond their sampling variances
+   (:func:`.stats.crossing_votes`) and the bias allowance, which gives each voter a bias as
+   large, in across-tree SDs, as those the fit leaves in the observables it did not use
+   (:func:`.stats.bias_scale`; it covers a fit that rests on one observable, whose bias no
+   disagreement shows); ``ci95_trees`` is the bootstrap over trees alone.
    Then a second effect is sought the same way on top of the first.
 4. **Report** — the JSON contract of the issue (``significant_mismatch``, ``mismatches``,
    ``effects``, ``accepted``) plus the verdict in words, the group/tie-breaker reasoning, the

@@ -541,6 +541,9 @@ def _run_blocks(job: _Job, workers, progress, t0):
     """Run every block of ``job`` (forked workers when more than one) and yield the block
     results in block order."""
     global _JOB
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or workers < 1):
+        raise ConfigError(f"workers must be an integer ≥ 1 (None: all CPUs), got {workers!r}")
     survey, scene = job.survey, job.scene
     n_blocks = -(-survey.n_slots // job.block_slots)
     if getattr(scene, "needs_ray_estimate", False):
@@ -549,8 +552,6 @@ def _run_blocks(job: _Job, workers, progress, t0):
         job.raw_embree = job._raw_embree()
     if hasattr(scene, "prepare"):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking
-    if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 1):
-        raise ConfigError(f"workers must be an integer ≥ 1 (None: all CPUs), got {workers!r}")
     requested = workers or os.cpu_count() or 1
     workers = min(requested, max(n_blocks, 1))
     _JOB = job
