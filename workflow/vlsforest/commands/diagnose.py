@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from vlsforest.commands import check_workers
+
 
 def register(sub) -> None:
     """Add the ``diagnose`` sub-command."""
@@ -51,10 +53,7 @@ def run(args) -> int:
         source = args.sim_config
     setup = load_setup(source, real_dir=args.real, scenario=args.scenario)
     if args.workers is not None:
-        if args.workers < 1:
-            from vlsforest.errors import ConfigError
-
-            raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
+        check_workers(args.workers)
         setup.workers = args.workers
     if args.write_sim_config:
         import yaml

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 import sys
 
+from vlsforest.commands import check_workers
+
 
 def register(sub) -> None:
     """Add the ``simulate`` sub-command."""
@@ -36,10 +38,7 @@ def run(args) -> int:
         from vlsforest.errors import ConfigError
 
         raise ConfigError(f"--region-margin must be ≥ 0 (m), got {args.region_margin}")
-    if args.workers is not None and args.workers < 1:
-        from vlsforest.errors import ConfigError
-
-        raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
+    check_workers(args.workers)
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     region = args.region

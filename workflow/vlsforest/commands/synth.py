@@ -6,6 +6,7 @@ from pathlib import Path
 
 import yaml
 
+from vlsforest.commands import check_workers
 from vlsforest.errors import ConfigError
 
 
@@ -57,8 +58,7 @@ def run(args) -> int:
         where = str(path)
     if not isinstance(cfg, dict):
         raise ConfigError(f"{where}: the config must be a mapping")
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers must be ≥ 1, got {args.workers}")
+    check_workers(args.workers)
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
     physics = load_recording_physics(args.recording_physics) if args.recording_physics else None
     plots = [p.strip() for p in args.plots.split(",") if p.strip()] if args.plots else None
