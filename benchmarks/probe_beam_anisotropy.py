@@ -93,22 +93,27 @@ def offset_anisotropy(arrays: dict, labels: np.ndarray, kd: dict) -> pd.DataFram
     return pd.DataFrame.from_dict(rows, orient="index")
 
 
-def main(argv=None) -> int:
-    import bench_diagnose as bd
-    from scipy.spatial import cKDTree
-
-    from vlsforest.diagnose import core, load_setup
-    from vlsforest.diagnose.features import cloud_arrays
-    from vlsforest.io.las import read_las
-    from vlsforest.sim import Scene
-
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def probe_arguments(doc: str, argv=None):
+    """The probes' arguments (``--workdir``, ``--seed``, ``--truth-scene``, ``--method``), parsed."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--workdir", type=Path, required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--truth-scene", action="store_true", help="simulate the true leaves instead of the voxels")
     ap.add_argument("--method", default="scaled",
                     help="the voxel method of the quick workflow whose scene is simulated (default scaled)")
-    a = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def probe_setup(a):
+    """The diagnosis set-up of the probes and the beam assignments to simulate: the quick
+    workflow's view of seed ``a.seed`` (the ``a.method`` scene built first if missing, or the
+    true leaves with ``a.truth_scene``) against its ULS recorded with the hidden ellipse at 61
+    sub-rays."""
+    import bench_diagnose as bd
+
+    from vlsforest.diagnose import load_setup
+    from vlsforest.sim import Scene
+
     bd.BASE["uls"]["beam_sample_quality"] = 5
     wd = bd._quick_view(a.seed, a.workdir)
     res = wd / "results" / "Q1"
@@ -130,6 +135,18 @@ def main(argv=None) -> int:
         truth = bd._truth_scene(a.seed)
         Scene.from_yaml = classmethod(lambda cls, path, voxel_transform=None: truth)
         assign = {k: v for k, v in ASSIGN.items() if "hidden" in k or "circle" in k}
+    return setup, assign
+
+
+def main(argv=None) -> int:
+    from scipy.spatial import cKDTree
+
+    from vlsforest.diagnose import core
+    from vlsforest.diagnose.features import cloud_arrays
+    from vlsforest.io.las import read_las
+
+    a = probe_arguments(__doc__, argv)
+    setup, assign = probe_setup(a)
     kd: dict = {}
     got: list = []
     orig = core.tree_features

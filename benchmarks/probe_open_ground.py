@@ -28,13 +28,11 @@ angle.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "workflow"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -99,34 +97,14 @@ def main(argv=None) -> int:
     if "--plane" in (sys.argv[1:] if argv is None else argv):
         plane_heights()
         return 0
-    import bench_diagnose as bd
-    from probe_beam_anisotropy import ASSIGN
+    from probe_beam_anisotropy import probe_arguments, probe_setup
 
-    from vlsforest.diagnose import core, load_setup
+    from vlsforest.diagnose import core
     from vlsforest.diagnose.features import cloud_arrays
     from vlsforest.io.las import read_las
-    from vlsforest.sim import Scene
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workdir", type=Path, required=True)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--truth-scene", action="store_true", help="simulate the true leaves instead of the voxels")
-    ap.add_argument("--method", default="scaled")
-    a = ap.parse_args(argv)
-    bd.BASE["uls"]["beam_sample_quality"] = 5
-    wd = bd._quick_view(a.seed, a.workdir)
-    res = wd / "results" / "Q1"
-    cfg = a.workdir / f"seed{a.seed}" / "probe_sim.yaml"
-    cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, "beam_sample_quality": 5, "plots": {"Q1": {
-        "scene": str(res / a.method / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
-        "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
-    forest = bd._record(a.seed, "elliptical_footprint", a.workdir)
-    setup = load_setup(cfg, real_dir=forest / "plots")
-    assign = ASSIGN
-    if a.truth_scene:
-        truth = bd._truth_scene(a.seed)
-        Scene.from_yaml = classmethod(lambda cls, path, voxel_transform=None: truth)
-        assign = {k: v for k, v in ASSIGN.items() if "hidden" in k or "circle" in k}
+    a = probe_arguments(__doc__, argv)
+    setup, assign = probe_setup(a)
     got: list = []
     orig = core.tree_features
 
