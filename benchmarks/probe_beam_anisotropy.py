@@ -7,8 +7,9 @@ tree this probe measures, for every first-return echo labelled to the tree, the 
 to the nearest TLS point of that tree, split into its across-track and along-track components
 (the flight direction of each flight line from its echoes' positions against GPS time), and takes
 ``mean |across| − mean |along|`` in cm — overall and in three scan-angle strata (< 8°, 8–18°,
-≥ 18°) — and beside it the ground roughness ``ground_sd_local`` (cm), the observable the
-diagnosis' aspect fit rests on. It prints the mean residual (real − simulated), its SD across trees and the t-value for
+≥ 18°) — and beside it the all-echo ground roughness ``ground_sd_all`` (cm;
+:func:`ground_sd_all`), the observable the diagnosis' aspect fit rested on until session 37, and
+``ground_sd_growth``, the one it rests on since. It prints the mean residual (real − simulated), its SD across trees and the t-value for
 each beam assignment, with the quick forest's ULS recorded with the ellipse 1.6 × 0.5 mrad
 (aspect 3.2; ``bench_diagnose.py``'s ``elliptical_footprint`` case at 61 "real" sub-rays):
 
@@ -93,6 +94,21 @@ def offset_anisotropy(arrays: dict, labels: np.ndarray, kd: dict) -> pd.DataFram
     return pd.DataFrame.from_dict(rows, orient="index")
 
 
+def ground_sd_all(arrays: dict, trees) -> "pd.Series":
+    """Per tree, the SD (cm) of all ground echoes under its crown (radius + the features'
+    ``GROUND_PAD_M``) about per-1 m-cell, per-flight-line planes: the diagnosis' observable
+    ``ground_sd_local`` until session 37, which split it by scan angle."""
+    from vlsforest.diagnose.features import GROUND_PAD_M, _ground_stats
+
+    g = np.asarray(arrays["classification"]) == 2
+    xyz, line = arrays["xyz"][g], np.asarray(arrays["point_source_id"])[g]
+    out = {}
+    for _, t in trees.iterrows():
+        m = np.hypot(xyz[:, 0] - t.x, xyz[:, 1] - t.y) <= t.crown_radius + GROUND_PAD_M
+        out[int(t.tree_id)] = 100.0 * _ground_stats(xyz[m], line[m])[0]
+    return pd.Series(out, dtype=float)
+
+
 def probe_arguments(doc: str, argv=None):
     """The probes' arguments (``--workdir``, ``--seed``, ``--truth-scene``, ``--method``), parsed."""
     ap = argparse.ArgumentParser(description=doc.splitlines()[0])
@@ -155,7 +171,8 @@ def main(argv=None) -> int:
         f = orig(arrays, labels, trees, columns)
         if kd:
             an = offset_anisotropy(arrays, labels, kd)
-            an["ground_sd_local"] = 100.0 * f["ground_sd_local"].reindex(an.index)
+            an["ground_sd_all"] = ground_sd_all(arrays, trees).reindex(an.index)
+            an["ground_sd_growth"] = f["ground_sd_growth"].reindex(an.index)
             got.append(an)
         return f
 
@@ -165,7 +182,7 @@ def main(argv=None) -> int:
     kd.update({tid: (cKDTree(pts), pts) for tid, pts in plot.tree_points.items()})
     plot._features(cloud_arrays(read_las(plot.p.real)))
     real = got.pop()
-    cols = (*STRATA, "ground_sd_local")
+    cols = (*STRATA, "ground_sd_all", "ground_sd_growth")
     print(f"seed {a.seed}, {'true leaves' if a.truth_scene else 'voxels: ' + a.method}; "
           f"real: {', '.join(f'{k} {real[k].mean():+.3f}' for k in cols)} cm")
     print("assignment | " + " | ".join(f"{k}: sim, residual mean ± SD (t)" for k in cols))

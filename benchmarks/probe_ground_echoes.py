@@ -2,9 +2,10 @@
 
 Reads a case that ``bench_diagnose.py`` has run (its quick view and "real" recording under
 ``--workdir``) and prints the mean residual (real − simulated, in SD units of the residual as
-given) of ``ground_sd_local``, ``ground_dz_lines`` and ``ground_share_pct`` for each assignment,
+given) of ``ground_sd_nadir``, ``ground_sd_growth`` (``ground_sd_local`` until session 37),
+``ground_dz_lines`` and ``ground_share_pct`` for each assignment,
 once with every ground echo and once with the ground echoes of single-return pulses only; also
-the real trees' mean of the first two. Session 25 (README, "Diagnosis"), seed 0's ellipse:
+the real trees' mean of the first three. Session 25 (README, "Diagnosis"), seed 0's ellipse:
 
     python benchmarks/bench_diagnose.py --seeds 0 --cases elliptical_footprint --real-quality 5 \\
         --sim-quality 5 --workdir /tmp/diag
@@ -26,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "workflow"))
 
-GROUND = ("ground_sd_local", "ground_dz_lines", "ground_share_pct")
+GROUND = ("ground_sd_nadir", "ground_sd_growth", "ground_dz_lines", "ground_share_pct")
 
 
 def main(argv=None) -> int:
@@ -59,7 +60,7 @@ def main(argv=None) -> int:
         for label, assign in assigns.items():
             m = np.nanmean(study.residual(assign), axis=0) / sd
             print(f"  {label:10s}", {f: round(float(m[FEATURES.index(f)]), 2) for f in GROUND})
-        print("  real mean", {f: round(float(study.real[f].mean()), 4) for f in GROUND[:2]})
+        print("  real mean", {f: round(float(study.real[f].mean()), 4) for f in GROUND[:3]})
     return 0
 
 

@@ -1,13 +1,13 @@
 """Probe: does the ground in open cells show the beam's aspect ratio, free of the voxel model?
 
-The ellipse's aspect fit rests on the ground roughness ``ground_sd_local`` (README, "Diagnosis",
-sessions 26–29), which the voxel reconstruction biases: ground echoes under a crown share their
+The ellipse's aspect fit rested on the all-echo ground roughness (``ground_sd_local`` until
+session 37; here ``ground_sd_all``, README, "Diagnosis", sessions 26–29), which the voxel reconstruction biases: ground echoes under a crown share their
 pulse with vegetation, and the waveform's peaks merge. On bare, flat ground the beam's shape
 still acts (the footprint's range spread at oblique incidence shifts and widens the echo), so
 the ground observables computed only in *open* cells — 1 m cells where no return of the whole
 recording (any flight line) is above ground — might see the aspect without the mixing. Per tree
 (the ground column under its crown + 2 m, as the diagnosis' ground observables) this probe
-computes ``ground_sd_local`` / ``ground_dz_lines`` from the open cells' ground echoes only, and
+computes that roughness and ``ground_dz_lines`` from the open cells' ground echoes only, and
 beside them the diagnosis' own ground observables, for the quick forest's ULS recorded with the
 hidden ellipse 1.6 × 0.5 mrad (aspect 3.2; ``bench_diagnose.py``'s ``elliptical_footprint`` case
 at 61 sub-rays) and simulations of the tool's view with several beams. It prints the simulated
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "workflow"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 #: the columns printed: the open-cell observables and the diagnosis' own ground observables
-COLS = ("open_sd", "open_dz", "open_n", "ground_sd_local", "ground_dz_lines", "ground_sd_single", "ground_dz_single")
+COLS = ("open_sd", "open_dz", "open_n", "ground_sd_all", "ground_dz_lines", "ground_sd_single", "ground_dz_single")
 
 
 def open_ground(arrays: dict, trees: pd.DataFrame, cell: float = 1.0, pad: float = 2.0) -> pd.DataFrame:
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     if "--plane" in (sys.argv[1:] if argv is None else argv):
         plane_heights()
         return 0
-    from probe_beam_anisotropy import probe_arguments, probe_setup
+    from probe_beam_anisotropy import ground_sd_all, probe_arguments, probe_setup
 
     from vlsforest.diagnose import core
     from vlsforest.diagnose.features import cloud_arrays
@@ -111,7 +111,8 @@ def main(argv=None) -> int:
     def features(arrays, labels, trees, columns=None):
         f = orig(arrays, labels, trees, columns)
         og = open_ground(arrays, trees)
-        for c in ("ground_sd_local", "ground_dz_lines", "ground_sd_single", "ground_dz_single"):
+        og["ground_sd_all"] = ground_sd_all(arrays, trees).reindex(og.index)
+        for c in ("ground_dz_lines", "ground_sd_single", "ground_dz_single"):
             og[c] = 100.0 * f[c].reindex(og.index)
         got.append(og)
         return f

@@ -203,7 +203,7 @@ def test_observables_of_a_hand_made_tree():
     inten = np.r_[np.full(50, 100.0), np.full(50, 50.0), np.full(50, 80.0), np.full(50, 60.0),
                   np.full(50, 40.0), np.full(100, 200.0)]
     assert f["int_p01_rel"] == pytest.approx(np.percentile(inten, 1) / np.percentile(inten, 10))
-    assert f["ground_sd_local"] < 0.03  # ground noise σ = 1 cm about local planes
+    assert f["ground_sd_nadir"] < 0.03  # ground noise σ = 1 cm about local planes
     assert list(tree_features(a, labels, trees).columns) == list(FEATURES)
 
 
@@ -265,10 +265,44 @@ def test_ground_observables_see_range_and_strip_noise():
         labels = np.r_[np.zeros(4000, int), np.full(30, 1)]
         trees = pd.DataFrame({"tree_id": [1], "x": [0.0], "y": [0.0], "z": [0.0], "crown_radius": [1.0]})
         out[name] = tree_features(arr, labels, trees).loc[1]
-    assert out["clean"]["ground_sd_local"] == pytest.approx(0.005, rel=0.25)
-    assert out["range"]["ground_sd_local"] == pytest.approx(0.05, rel=0.15)
+    assert out["clean"]["ground_sd_nadir"] == pytest.approx(0.005, rel=0.25)
+    assert out["range"]["ground_sd_nadir"] == pytest.approx(0.05, rel=0.15)
     assert out["strip"]["ground_dz_lines"] == pytest.approx(0.16, rel=0.15)
     assert out["clean"]["ground_dz_lines"] < 0.02 and out["range"]["ground_dz_lines"] < 0.06
+
+
+def test_ground_roughness_growth_off_nadir_follows_the_beam_not_a_common_gain():
+    """``ground_sd_growth`` = ln(SD off nadir / SD nadir): an elongated footprint spreads the
+    echoes off nadir only (its range interval grows with tan(scan angle)), while a gain common to
+    both strata (the echo mixing with vegetation that a voxel model gets wrong) cancels in it and
+    shows in ``ground_sd_nadir`` only; with no off-nadir echoes the growth is not defined."""
+    rng = np.random.default_rng(21)
+    n = 8000
+    xy = rng.uniform(-3, 3, (n, 2))
+    line = rng.integers(1, 3, n)
+    ang = np.where(rng.random(n) < 0.5, 5.0, 25.0)  # below and above ANGLE_SPLIT_DEG (15°)
+    trees = pd.DataFrame({"tree_id": [1], "x": [0.0], "y": [0.0], "z": [0.0], "crown_radius": [1.0]})
+    out = {}
+    for name, sd_nadir, sd_off, angles in (("round", 0.01, 0.01, ang), ("long", 0.01, 0.03, ang),
+                                           ("long, mixed ×1.5", 0.015, 0.045, ang),
+                                           ("nadir only", 0.01, 0.03, np.full(n, 5.0))):
+        z = 0.05 * xy[:, 0] + np.where(angles < 15.0, sd_nadir, sd_off) * rng.normal(size=n)
+        a = {"xyz": np.c_[xy, z], "return_number": np.ones(n, int), "number_of_returns": np.ones(n, int),
+             "gps_time": np.arange(n) * 1e-4, "point_source_id": line, "scan_angle": angles,
+             "classification": np.full(n, 2), "intensity": np.full(n, 100.0)}
+        tree = {"xyz": np.array([[0, 0, 10.0]] * 30), "return_number": np.ones(30, int),
+                "number_of_returns": np.ones(30, int), "gps_time": 5 + np.arange(30) * 1e-3,
+                "point_source_id": np.ones(30, int), "scan_angle": np.zeros(30), "classification": np.full(30, 5),
+                "intensity": np.full(30, 1.0)}
+        arr = {k: np.concatenate([a[k], tree[k]]) for k in a}
+        out[name] = tree_features(arr, np.r_[np.zeros(n, int), np.full(30, 1)], trees).loc[1]
+    assert out["round"]["ground_sd_growth"] == pytest.approx(0.0, abs=0.1)
+    assert out["long"]["ground_sd_growth"] == pytest.approx(np.log(3.0), abs=0.1)
+    assert out["long"]["ground_sd_nadir"] == pytest.approx(0.01, rel=0.1)
+    # the common gain: the nadir roughness × 1.5, the growth as before
+    assert out["long, mixed ×1.5"]["ground_sd_nadir"] == pytest.approx(0.015, rel=0.1)
+    assert out["long, mixed ×1.5"]["ground_sd_growth"] == pytest.approx(out["long"]["ground_sd_growth"], abs=0.08)
+    assert np.isnan(out["nadir only"]["ground_sd_growth"])
 
 
 def test_single_return_ground_observables_leave_out_echoes_mixed_with_vegetation():
@@ -299,7 +333,7 @@ def test_single_return_ground_observables_leave_out_echoes_mixed_with_vegetation
         labels = np.r_[np.zeros(n, int), np.full(30, 1)]
         out[name] = tree_features(arr, labels, trees).loc[1]
     # the mixing: uniform 0–0.3 m on 40 % of the echoes, SD ≈ 0.3 · √(0.4 / 12 + 0.4 · 0.6 / 4) ≈ 0.09 m
-    assert out["clean"]["ground_sd_local"] > 0.07
+    assert out["clean"]["ground_sd_nadir"] > 0.07
     assert out["clean"]["ground_sd_single"] == pytest.approx(0.005, rel=0.25)
     assert out["range"]["ground_sd_single"] == pytest.approx(0.05, rel=0.15)
     assert out["strip"]["ground_dz_single"] == pytest.approx(0.16, rel=0.15)
@@ -812,13 +846,14 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ the logic
-#: the observables of the first :class:`_LinearStudy` (session 25), in their order
+#: the observables of the first :class:`_LinearStudy` (session 25), in their order (``ground_sd_nadir``
+#: in the slot of ``ground_sd_local``, which session 37 split into it and ``ground_sd_growth``)
 _STANDIN_FEATURES = (
     "height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "multi_return_pct",
     "returns_per_pulse", "rn1_share", "rn2_share", "rn3plus_share", "first_p50", "first_p90", "first_max",
     "interecho_median", "interecho_p10", "interecho_short_pct", "interecho_floor",
     "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
-    "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
+    "crown_extent_ratio", "ground_share_pct", "ground_sd_nadir", "ground_dz_lines",
     "int_p01_rel", "int_p05_rel", "int_floor",
 )
 

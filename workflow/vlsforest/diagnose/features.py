@@ -26,15 +26,24 @@ Observables (columns of :func:`tree_features`):
 * ``crown_extent_ratio`` — crown extent along x over extent along y (5–95 % range of the points
   at or above CBH; directional footprints stretch crowns one way);
 * ``ground_share_pct`` — % of returns in the crown column that are ground returns;
-* ``ground_sd_local`` — SD of ground returns about a local plane fitted per 1 m cell and flight
-  line (range noise thickens it);
+* ``ground_sd_nadir`` — SD of the ground returns at scan angles below :data:`ANGLE_SPLIT_DEG`
+  about a local plane fitted per 1 m cell and flight line (range noise thickens it);
+* ``ground_sd_growth`` — ln(SD off-nadir / SD nadir), the same roughness at scan angles of
+  :data:`ANGLE_SPLIT_DEG` and above over that below. Off nadir a footprint spreads over a range
+  interval that grows with its extent across the scan line times tan(scan angle), so this growth
+  follows the beam's shape (an ellipse's major axis lies along the scan) and hardly its solid
+  angle's share at nadir. Both strata's ground echoes are also pulled by the vegetation that
+  shares their pulses (see below), which a voxel reconstruction gets wrong; that mixing scales
+  the roughness of both strata alike to first order and cancels in the ratio, which the
+  all-angle roughness it replaces did not do (README, "Diagnosis", session 37);
 * ``ground_dz_lines`` — median absolute offset between the ground of two flight lines in the
   same 1 m cell (trajectory errors move whole strips);
-* ``ground_sd_single``, ``ground_dz_single`` — the same two from the ground returns of pulses
-  with a single return only. A ground echo that shares its pulse with vegetation is pulled by
-  it (the waveform's peaks merge within the dead zone), so the two above also follow the beam's
-  footprint and the low vegetation, which a voxel reconstruction gets wrong; these two keep
-  what moves the ground itself (range noise, strip shifts) without that mixing;
+* ``ground_sd_single``, ``ground_dz_single`` — the roughness (all scan angles) and the offset
+  from the ground returns of pulses with a single return only. A ground echo that shares its
+  pulse with vegetation is pulled by it (the waveform's peaks merge within the dead zone), so
+  the three above also follow the beam's footprint and the low vegetation, which a voxel
+  reconstruction gets wrong; these two keep what moves the ground itself (range noise, strip
+  shifts) without that mixing;
 * ``int_p01_rel``, ``int_p05_rel`` — the 1st and 5th percentile of the tree's echo intensities
   divided by the 10th: scale-free (real intensities are rarely calibrated, and a reflectance
   change scales them all), but a detection threshold cuts the weak end and raises them;
@@ -65,7 +74,7 @@ FEATURES = STUDY_METRICS + (
     "first_p50", "first_p90", "first_max",
     "interecho_median", "interecho_p10", "interecho_short_pct", "interecho_floor",
     "multi_pct_nadir", "multi_pct_offnadir", "rpp_nadir", "rpp_offnadir",
-    "crown_extent_ratio", "ground_share_pct", "ground_sd_local", "ground_dz_lines",
+    "crown_extent_ratio", "ground_share_pct", "ground_sd_nadir", "ground_sd_growth", "ground_dz_lines",
     "ground_sd_single", "ground_dz_single",
     "int_p01_rel", "int_p05_rel", "int_floor",
 )
@@ -80,7 +89,9 @@ STRATUM = {
     "multi_pct_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "multi_pct_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
     "rpp_nadir": f"scan angle < {ANGLE_SPLIT_DEG:g}°", "rpp_offnadir": f"scan angle ≥ {ANGLE_SPLIT_DEG:g}°",
     "crown_extent_ratio": "crown (along x / along y)", "ground_share_pct": "ground under the crown",
-    "ground_sd_local": "ground under the crown", "ground_dz_lines": "ground under the crown, between flight lines",
+    "ground_sd_nadir": f"ground under the crown, scan angle < {ANGLE_SPLIT_DEG:g}°",
+    "ground_sd_growth": f"ground under the crown, scan angle ≥ {ANGLE_SPLIT_DEG:g}° over < {ANGLE_SPLIT_DEG:g}°",
+    "ground_dz_lines": "ground under the crown, between flight lines",
     "ground_sd_single": "single-return ground under the crown",
     "ground_dz_single": "single-return ground under the crown, between flight lines",
     "int_p01_rel": "weakest echoes (intensity / its 10th percentile)",
@@ -282,6 +293,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     gxyz = xyz[gsel]
     gline = np.asarray(arrays["point_source_id"])[gsel]
     gsingle = np.asarray(arrays["number_of_returns"])[gsel] == 1
+    gnadir = np.abs(np.asarray(arrays["scan_angle"], np.float64)[gsel]) < ANGLE_SPLIT_DEG
     allxy = xyz[:, :2]
     columns = _ColumnIndex(allxy) if columns is None else columns
     gcolumns = _ColumnIndex(gxyz[:, :2])
@@ -327,7 +339,12 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
         if len(col) >= 20:
             row["ground_share_pct"] = 100.0 * float(np.mean(arrays["classification"][col] == 2))
         gcol = _within(gxyz[:, :2], gcolumns, float(t.x), float(t.y), float(t.crown_radius) + GROUND_PAD_M)
-        row["ground_sd_local"], row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])
+        row["ground_dz_lines"] = _ground_stats(gxyz[gcol], gline[gcol])[1]
+        gn, go = gcol[gnadir[gcol]], gcol[~gnadir[gcol]]
+        row["ground_sd_nadir"] = sd_n = _ground_stats(gxyz[gn], gline[gn])[0]
+        sd_o = _ground_stats(gxyz[go], gline[go])[0]
+        if sd_n > 0 and sd_o > 0:  # NaN (too few echoes in a stratum) fails both
+            row["ground_sd_growth"] = float(np.log(sd_o / sd_n))
         gs = gcol[gsingle[gcol]]
         row["ground_sd_single"], row["ground_dz_single"] = _ground_stats(gxyz[gs], gline[gs])
         rows.append(row)
