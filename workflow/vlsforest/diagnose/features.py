@@ -30,12 +30,13 @@ Observables (columns of :func:`tree_features`):
   about a local plane fitted per 1 m cell and flight line (range noise thickens it);
 * ``ground_sd_growth`` — ln(SD off-nadir / SD nadir), the same roughness at scan angles of
   :data:`ANGLE_SPLIT_DEG` and above over that below. Off nadir a footprint spreads over a range
-  interval that grows with its extent across the scan line times tan(scan angle), so this growth
-  follows the beam's shape (an ellipse's major axis lies along the scan) and hardly its solid
-  angle's share at nadir. Both strata's ground echoes are also pulled by the vegetation that
-  shares their pulses (see below), which a voxel reconstruction gets wrong; that mixing scales
-  the roughness of both strata alike to first order and cancels in the ratio, which the
-  all-angle roughness it replaces did not do (README, "Diagnosis", session 37);
+  interval that grows with its extent along the scan times tan(scan angle), so the growth
+  follows that extent — at a given solid angle the beam's shape, an ellipse's major axis lying
+  along the scan unless turned. Both strata's ground echoes are also pulled by the vegetation
+  that shares their pulses (see below), which a voxel reconstruction gets wrong; that mixing
+  scales the roughness of both strata alike to first order and cancels in the ratio, as it did
+  not in the all-angle roughness (``ground_sd_local``) these two replace (README, "Diagnosis",
+  session 37);
 * ``ground_dz_lines`` — median absolute offset between the ground of two flight lines in the
   same 1 m cell (trajectory errors move whole strips);
 * ``ground_sd_single``, ``ground_dz_single`` — the roughness (all scan angles) and the offset
