@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -77,13 +76,15 @@ def _group_fit_error(case: str, fitted: dict):
     """Relative error of a footprint-group fit on the group's shared quantity, the divergence of
     the circular beam of equal solid angle, √(major · minor), fitted vs hidden (it stands for
     the fit when another member of the group was fitted: the ellipse by the circle). None when
-    the case hides no footprint effect or none was fitted. ``fitted``: the accepted values as
-    simulated (the report's ``model``)."""
+    the case hides no footprint effect or none was fitted. ``fitted``: the accepted effects'
+    values (an ellipse's are the whole beam, so a scale fitted before it does not count)."""
     from vlsforest.diagnose import CANDIDATES
     from vlsforest.diagnose.library import equivalent_circular_divergence
 
     hidden = {n: v for n, v in CASES[case][1].items() if CANDIDATES[n].group == "footprint"}
-    got = {n: v for n, v in fitted.items() if CANDIDATES[n].group == "footprint"}  # as simulated
+    got = {n: v for n, v in fitted.items() if CANDIDATES[n].group == "footprint"}
+    if "elliptical_footprint" in got:  # the whole beam: it replaces a scale fitted before it (library.merge)
+        got.pop("beam_divergence", None)
     if not hidden or not got:
         return None
     survey = _quick_uls_survey()
@@ -286,6 +287,11 @@ def summarise(df) -> None:
         print(f"null runs with an accepted effect: {(nl.accepted.fillna('') != '').sum()} of {len(nl)}")
     print(f"per run: {df.seconds.median():.0f} s median, {df.seconds.max():.0f} s at most, "
           f"{df.traced.max()} traced simulations at most")
+    if "observables" in df:  # the rows' code differs where the observables did (older rows: no count)
+        counts = df.observables.fillna(0).astype(int).value_counts().sort_index(ascending=False)
+        print("runs by the number of observables of their code: " + ", ".join(
+            f"{n if n else 'not recorded'}: {c} ({', '.join(sorted(set(df[df.observables.fillna(0) == n].case)))})"
+            for n, c in counts.items()))
 
 
 def main(argv=None) -> int:

@@ -184,7 +184,7 @@ def main(argv=None) -> int:
     real = got.pop()
     cols = (*STRATA, "ground_sd_all", "ground_sd_growth")
     print(f"seed {a.seed}, {'true leaves' if a.truth_scene else 'voxels: ' + a.method}; "
-          f"real: {', '.join(f'{k} {real[k].mean():+.3f}' for k in cols)} cm")
+          f"real: {', '.join(f'{k} {real[k].mean():+.3f}' for k in cols)} (cm; the growth: ln of a ratio)")
     print("assignment | " + " | ".join(f"{k}: sim, residual mean ± SD (t)" for k in cols))
     for label, asg in assign.items():
         study.sim(asg)
