@@ -1,8 +1,9 @@
 """Probe: does the ground in open cells show the beam's aspect ratio, free of the voxel model?
 
 The ellipse's aspect fit rested on the all-echo ground roughness (``ground_sd_local`` until
-session 37; here ``ground_sd_all``, README, "Diagnosis", sessions 26–29), which the voxel reconstruction biases: ground echoes under a crown share their
-pulse with vegetation, and the waveform's peaks merge. On bare, flat ground the beam's shape
+session 37; here ``ground_sd_all``; README, "Diagnosis", sessions 26–29), which the voxel
+reconstruction biases: ground echoes under a crown share their pulse with vegetation, and the
+waveform's peaks merge. On bare, flat ground the beam's shape
 still acts (the footprint's range spread at oblique incidence shifts and widens the echo), so
 the ground observables computed only in *open* cells — 1 m cells where no return of the whole
 recording (any flight line) is above ground — might see the aspect without the mixing. Per tree
