@@ -446,7 +446,6 @@ def div(v):
 
 def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeypatch, tmp_path):
     import vlsforest.sim as vsim
-    from vlsforest.diagnose import core
 
     traced = []
 

@@ -64,7 +64,7 @@ def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
             assert len(sc.grids) == 1 and sc.grids[0].n_voxels == len(a) + len(b)
         lo, hi = sc.bounds()
         res[backend] = sc.trace(*_rays(3000, np.random.default_rng(4), lo, hi))
-    (t1, p1, c1), (t2, p2, c2) = res["auto"], res["embree"]
+    (t1, p1, _), (t2, p2, _) = res["auto"], res["embree"]
     hit = np.isfinite(t2)
     assert hit.mean() > 0.3 and {0, 1, 2} <= set(p2[hit].tolist())
     assert np.array_equal(np.isfinite(t1), hit) and (p1 == p2).all()

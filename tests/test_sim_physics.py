@@ -6,7 +6,6 @@ import pytest
 from vlsforest.errors import InputDataError
 from vlsforest.sim import Material, Scene, redetect, simulate, trace_hits
 from vlsforest.sim.survey import survey_from_dict
-from vlsforest.sim.waveform import C_M_PER_NS
 
 
 def _survey(overrides, legs, speed=5.0, scanner="riegl_vq780i", detector=None, seed=0):
