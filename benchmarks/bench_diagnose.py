@@ -249,8 +249,10 @@ def _worse_given(g) -> str:
     """How many runs' fits make a held-out metric significantly worse than the simulation as given,
     and how many of those the simulation told the hidden truth makes worse as well (a voxel-model
     error that the missing effect had compensated: no fit of the effect can avoid it)."""
-    worse = [set(w.split("+")) if isinstance(w, str) and w else set() for w in g.worse]
-    truth = [set(w.split("+")) if isinstance(w, str) and w else set() for w in g.worse_told_truth]
+    def metrics(col):  # the rows' "+"-joined metric names (empty or missing: none)
+        return [set(w.split("+")) if isinstance(w, str) and w else set() for w in col]
+
+    worse, truth = metrics(g.worse), metrics(g.worse_told_truth)
     n = sum(bool(w) for w in worse)
     also = sum(bool(w) and w <= t for w, t in zip(worse, truth))
     return f"{n}/{len(g)}" + (f" ({also} of them: the same metrics worse when told the truth)" if n else "")
