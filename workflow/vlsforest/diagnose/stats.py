@@ -320,13 +320,39 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     it changes sign, linear interpolation gives the value at which that observable alone would
     match (the crossing nearest the loss minimiser when there are several). The estimate is the
     median of these values weighted by ``w_j · range_j²`` (how strongly the parameter moves the
-    observable). Observables that never cross — those whose residual is dominated by an error
+    observable), interpolated between neighbouring votes (:func:`_weighted_median`; on the log
+    scale for ``log``) so that it does not jump between two voters of near-equal weight. Observables that never cross — those whose residual is dominated by an error
     the candidate cannot remove, such as the voxel model's — do not vote, so they cannot pull
     the fit the way they pull a least-squares fit. Falls back to the least-squares grid minimum
     when fewer than three observables cross. :func:`crossing_votes` gives the votes and how far
     they disagree.
     """
     return crossing_votes(x, Ds, w, lo, hi, log, rows)[0]
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray, log: bool = False) -> float:
+    """Interpolated weighted median: 0.5 located between the values' centred cumulative weights.
+
+    Each value sits at the middle of its weight, ``(C_i − w_i / 2) / Σ w`` (``C_i`` the cumulative
+    weight up to and including it, in ascending order); the median is the linear interpolation
+    of the values at 0.5 (of their logarithms for ``log``). Unlike the plain weighted median it
+    moves continuously with the weights: two voters of equal weight give their midpoint rather
+    than whichever one the rounding picks, and a voter holding a share ``s > ½`` of the weight
+    keeps the estimate at most ``(1 − s) / s`` of the way toward a neighbouring vote (``1 − s``
+    when there are only the two: 1/10 of the way for 90 %).
+    """
+    v = np.asarray(values, float)
+    w = np.asarray(weights, float)
+    keep = np.isfinite(v) & np.isfinite(w) & (w > 0)
+    if not keep.any():
+        raise ValueError("weighted median of no positively weighted value")
+    v, w = v[keep], w[keep]
+    k = np.argsort(v, kind="stable")
+    v, w = v[k], w[k]
+    t = np.log(v) if log else v
+    centre = (np.cumsum(w) - 0.5 * w) / w.sum()
+    m = float(np.interp(0.5, centre, t))
+    return float(np.exp(m)) if log else m
 
 
 def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log: bool = False,
@@ -396,9 +422,7 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         return (x_ls, {}, {}) if detail else (x_ls, {})
     roots = np.array([r for r, _ in votes.values()])
     wts = np.array([q for _, q in votes.values()])
-    k = np.argsort(roots, kind="stable")
-    c = np.cumsum(wts[k])
-    value = float(np.clip(roots[k][np.searchsorted(c, 0.5 * c[-1])], lo, hi))
+    value = float(np.clip(_weighted_median(roots, wts, logt), lo, hi))
     if not detail:
         return value, votes
     v = np.array([var[j] for j in votes])
