@@ -1320,13 +1320,15 @@ def test_a_hidden_ellipse_gets_its_size_then_its_aspect(monkeypatch, seed):
     assert "(the beam: " in rep["verdict"] and "not separated" not in rep["verdict"]
     ell = next(e for e in rep["effects"] if e["name"] == "elliptical_footprint")
     assert "aspect" in ell["ci95"] and ell["equivalent_circular_fwhm_mrad"] == pytest.approx(np.sqrt(0.8), rel=0.2)
-    # the votes that set the aspect: their weighted median is the fitted aspect
+    # the votes that set the aspect: their weighted median (interpolated, on the log scale, as
+    # the aspect is searched) is the fitted aspect, between the votes either side of half the weight
     votes = ell["votes"]["aspect"]
     assert len(votes) >= 3 and sum(v["weight_share"] for v in votes.values()) == pytest.approx(1.0)
     x = sorted(votes.values(), key=lambda v: v["crossing"])
     half = np.searchsorted(np.cumsum([v["weight_share"] for v in x]), 0.5)
     aspect = rep["model"]["elliptical_footprint"]["major_mrad"] / rep["model"]["elliptical_footprint"]["minor_mrad"]
-    assert x[half]["crossing"] == pytest.approx(aspect)
+    assert st._weighted_median([v["crossing"] for v in x], [v["weight_share"] for v in x], log=True) == pytest.approx(aspect)
+    assert x[max(half - 1, 0)]["crossing"] <= aspect * (1 + 1e-9) and aspect <= x[min(half + 1, len(x) - 1)]["crossing"] * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3])
@@ -1525,9 +1527,11 @@ def test_matching_the_mean_of_the_draws_removes_the_simulations_share_of_the_sca
     eff = rep["effects"][0]
     assert eff["name"] == "trajectory_noise" and eff["accepted"], rep["verdict"]
     sc = eff["realisation_scatter"]
-    assert sc["draw0_fit"] == pytest.approx(0.08 / 0.7, rel=0.08)
+    # the stand-in's fits scatter about the truth (6 % rms over seeds 0-19 for this case, at most
+    # 13 %; this seed: -10 %), so 15 % here: still far from draw 0's +43 %
+    assert sc["draw0_fit"] == pytest.approx(0.08 / 0.7, rel=0.15)
     assert sc["mean_amplitude"] == pytest.approx(1.0 / 0.7, rel=1e-9)
-    assert eff["parameters"]["position_sigma_m"] == pytest.approx(0.08, rel=0.08)
+    assert eff["parameters"]["position_sigma_m"] == pytest.approx(0.08, rel=0.15)
     lo, hi = eff["ci95"]["position_sigma_m"]
     assert lo <= 0.08 <= hi
 
