@@ -21,7 +21,8 @@ Steps (see the README section "Diagnosis"):
    shared by all folds; several parameters by coordinate search; the ellipse along its aspect
    ratio at the solid angle of the beam simulated so far): each observable whose
    mean residual changes sign along the grid votes for its crossing, and the weighted median of
-   the votes is the estimate (:func:`.stats.robust_fit`; observables dominated by errors the
+   the votes, interpolated between neighbouring votes, is the estimate
+   (:func:`.stats.robust_fit`; observables dominated by errors the
    candidate cannot remove do not vote); k-fold across trees: each fold's value is fitted on
    the other trees and simulated for the held-out ones. The effect is accepted when the held-out per-tree error drops
    significantly (one-sided paired Wilcoxon); observables that get significantly worse (Holm)
