@@ -133,6 +133,11 @@ def test_weighted_median_interpolates_between_votes_and_does_not_jump_at_a_near_
     x = np.linspace(0, 10, 11)
     Ds = [np.tile(np.r_[-(v - 2.0) * np.ones(2), -(v - 6.0) * np.ones(2)], (4, 1)) for v in x]
     assert st.robust_fit(x, Ds, np.ones(4), 0, 10) == pytest.approx(4.0)
+    # voters exactly 0 all along the grid weigh nothing: alone, they leave the grid minimum
+    Dz = [np.zeros((4, 3)) for _ in x]
+    value, votes = st.crossing_votes(x, Dz, np.ones(3), 0, 10)
+    assert len(votes) == 3 and all(q == 0 for _, q in votes.values())
+    assert value == st.grid_minimum(x, [st.bias_loss(D, np.ones(3)) for D in Dz], 0, 10)
 
 
 def test_crossing_votes_take_an_observable_that_is_exactly_zero_over_a_stretch():

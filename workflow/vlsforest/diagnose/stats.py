@@ -321,7 +321,8 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     match (the crossing nearest the loss minimiser when there are several). The estimate is the
     median of these values weighted by ``w_j · range_j²`` (how strongly the parameter moves the
     observable), interpolated between neighbouring votes (:func:`_weighted_median`; on the log
-    scale for ``log``) so that it does not jump between two voters of near-equal weight. Observables that never cross — those whose residual is dominated by an error
+    scale for ``log``) so that it does not jump between two voters of near-equal weight.
+    Observables that never cross — those whose residual is dominated by an error
     the candidate cannot remove, such as the voxel model's — do not vote, so they cannot pull
     the fit the way they pull a least-squares fit. Falls back to the least-squares grid minimum
     when fewer than three observables cross. :func:`crossing_votes` gives the votes and how far
@@ -422,7 +423,9 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
         return (x_ls, {}, {}) if detail else (x_ls, {})
     roots = np.array([r for r, _ in votes.values()])
     wts = np.array([q for _, q in votes.values()])
-    value = float(np.clip(_weighted_median(roots, wts, logt), lo, hi))
+    # voters whose residual is exactly 0 all along the grid weigh nothing; with no other voter
+    # the least-squares grid minimum stands
+    value = float(np.clip(_weighted_median(roots, wts, logt), lo, hi)) if np.any(wts > 0) else x_ls
     if not detail:
         return value, votes
     v = np.array([var[j] for j in votes])
