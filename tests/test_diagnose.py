@@ -675,7 +675,8 @@ def test_library_reads_baselines_and_applies_values():
     s, edits = c["beam_divergence"].apply(survey, {"scale": 2.0})
     assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.0, 1.0]) and edits == {}
     s, _ = c["elliptical_footprint"].apply(survey, {"major_mrad": 1.6, "minor_mrad": 0.5})
-    assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.6 * 1.6986, 0.5 * 1.6986], rel=1e-3)
+    # FWHM → full angle at 1/e² (× 1.6986), stored as the 1/e² half angle
+    assert s["overrides"]["beam_divergence_mrad"] == pytest.approx([1.6 * 1.6986 / 2, 0.5 * 1.6986 / 2], rel=1e-3)
     s, _ = c["trajectory_noise"].apply(survey, {"position_sigma_m": 0.04})
     assert s["trajectory_noise"]["position_sigma_m"] == 0.04
     assert c["reflectance"].apply(survey, {"scale": 0.5})[1] == {"reflectance_scale": 0.5}
@@ -916,17 +917,20 @@ class _LinearStudy:
         self.kept = []  # (stage's assignments, spill) per round, as core._attribute marks them
         self.simulated = set()
         self.base = normal(n_trees) * 3
-        self.G = {name: normal() for name in lib.CANDIDATES}
+        self.G = {name: normal() for name in lib.CANDIDATES if name != "peak_rule"}
         # footprint: per unit of relative size, and per unit of log aspect ratio (smaller: on the
         # quick forest a circle of the ellipse's solid angle removes most of its error)
         self.scale = {"beam_divergence": 1.0, "elliptical_footprint": 0.45, "detection_threshold": 1 / 5000,
                       "reflectance": 1.0, "waveform_window": 1.0, "max_returns": 1.0, "range_noise": 20.0,
-                      "trajectory_noise": 20.0, "incidence_reflectance": 3.0, "tls_occlusion": 1.0}
+                      "trajectory_noise": 20.0, "incidence_reflectance": 3.0, "tls_occlusion": 1.0,
+                      "peak_rule": 1.0}
         # the aspect at equal solid angle: its own signature (the size-driven ones do not move)
         self.G["elliptical_footprint"] = normal()
         if equal_footprints:  # the aspect changes every observable as the size does
             self.G["elliptical_footprint"] = self.G["beam_divergence"].copy()
         recon_err = recon * normal() + 0.7 * normal(n_trees)
+        # the detector rule's signature from a stream of its own (the others' draws stay as they are)
+        self.G["peak_rule"] = np.random.default_rng([seed, 2]).normal(size=len(FEATURES))
         self.index = pd.MultiIndex.from_product([["Q"], range(1, n_trees + 1)], names=["plot", "tree_id"])
         real = self.base + recon_err + self._response(hidden, draw="real") + out_of_library * normal()
         self.real = pd.DataFrame(real, index=self.index, columns=list(FEATURES))
@@ -1245,12 +1249,42 @@ def test_a_tie_across_groups_is_broken_on_both_groups_observables():
     assert note["resolved"] and note["winner"] == "elliptical_footprint"
 
 
+def test_peak_rule_candidate_switches_the_detector_rule():
+    """The study's scenarios run HELIOS++ 1.0.8's peak rule; the candidate turns on the physical
+    rule the recordings have, and the simulator then reports the isolated echoes."""
+    from vlsforest.sim import Scene, simulate
+    from vlsforest.sim.survey import survey_from_dict
+
+    cand = lib.CANDIDATES["peak_rule"]
+    assert cand.group == "dead zone" and cand.render == "hits"
+    study = {"scanner": "riegl_vq780i", "detector": {"mode": "helios_v1"},
+             "overrides": {"prf_hz": 20000, "scan_freq_hz": 20, "scan_angle_deg": 2.0, "max_scan_angle_deg": 2.0,
+                           "range_min_m": 0.0, "range_noise_m": 0.0},
+             "platform": {"speed_mps": 5.0, "legs": [{"start": [0, -1, 100], "end": [0, 1, 100]}]}}
+    assert cand.baseline(study) == {"physical": 0.0}
+    assert cand.baseline({"scanner": "riegl_vq780i"}) == {"physical": 1.0}  # the default detector
+    assert cand.step(cand.baseline(study), study) == {"physical": 1.0}
+    on, edits = cand.apply(study, {"physical": 1.0})
+    assert on["detector"] == {"mode": "helios_v1", "peak_rule": "physical"} and edits == {}
+    assert cand.apply(study, {"physical": 0.0})[0]["detector"]["peak_rule"] == "helios"
+    # a thin roof 3 m above the ground, half of each footprint: two separated echo groups; with
+    # the study's 1.75 ns window HELIOS++'s rule drops the later one (its first bin is 0)
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    sc.add_plane(2, 3.0, [0.0, -50, 50, 50])
+    n = {}
+    for k, s in (("helios", study), ("physical", on)):
+        res = simulate(sc, survey_from_dict(s), workers=1)
+        n[k] = len(res.points["xyz"])
+    assert n["physical"] > n["helios"]
+
+
 def test_equivalent_circular_divergence_is_the_geometric_mean_of_the_fwhm_axes():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}}
     k = float(np.sqrt(2.0 / np.log(2.0)))  # FWHM → 1/e² full width of a Gaussian beam
-    # the survey's own beam: 0.5 mrad at 1/e²
-    assert lib.equivalent_circular_divergence(survey, {}) == pytest.approx(0.5 / k)
-    assert lib.equivalent_circular_divergence(survey, {"beam_divergence": {"scale": 3.0}}) == pytest.approx(1.5 / k)
+    # the survey's own beam: 0.5 mrad is the 1/e² half angle, so 1.0 mrad full at 1/e²
+    assert lib.equivalent_circular_divergence(survey, {}) == pytest.approx(1.0 / k)
+    assert lib.equivalent_circular_divergence(survey, {"beam_divergence": {"scale": 3.0}}) == pytest.approx(3.0 / k)
     ell = {"elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5}}
     assert lib.equivalent_circular_divergence(survey, ell) == pytest.approx(np.sqrt(0.8))
     # a divergence scale is applied last (as in the diagnosis' simulations): it scales the ellipse
@@ -1266,7 +1300,7 @@ def test_the_ellipse_is_searched_along_its_aspect_from_the_beam_simulated_so_far
     survey = {"scanner": "riegl_minivux1uav", "overrides": {}}
     ell = lib.CANDIDATES["elliptical_footprint"]
     base = {"beam_divergence": {"scale": 3.0}}
-    d0 = 0.5 / lib._FWHM_TO_1E2                      # the survey's circle at FWHM
+    d0 = 1.0 / np.sqrt(2.0 / np.log(2.0))            # the survey's circle at FWHM (1 mrad full at 1/e²)
     cur = ell.current(survey, base)
     assert cur == pytest.approx({"major_mrad": 3 * d0, "minor_mrad": 3 * d0})
     assert ell.current(survey, {}) == pytest.approx({"major_mrad": d0, "minor_mrad": d0})
@@ -1305,7 +1339,7 @@ def test_an_unseparated_footprint_group_reports_the_solid_angle_it_fits(monkeypa
     assert tie is not None and not tie["resolved"] and tie["winner"] == "beam_divergence"
     fit = rep["effects"][0]
     eq = fit["equivalent_circular_fwhm_mrad"]
-    assert eq == pytest.approx(fit["parameters"]["scale"] * 0.5 / lib._FWHM_TO_1E2)
+    assert eq == pytest.approx(fit["parameters"]["scale"] * 1.0 / np.sqrt(2.0 / np.log(2.0)))
     assert f"{eq * eq:.3g} mrad²" in rep["verdict"] and "ellipse and circle not separated" in rep["verdict"]
     assert "aspect ratios are not identified" in tie["text"]
 
@@ -1583,5 +1617,5 @@ def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):
 def test_a_hidden_circle_gets_no_aspect(monkeypatch):
     rep = _run_logic(monkeypatch, _LinearStudy({"beam_divergence": {"scale": 2.0}}))
     assert rep["accepted"] == ["beam_divergence"], rep["verdict"]
-    d0 = 0.5 / lib._FWHM_TO_1E2
+    d0 = 1.0 / np.sqrt(2.0 / np.log(2.0))  # the survey's circle at FWHM (1 mrad full at 1/e²)
     assert rep["beam_fwhm_mrad"] == pytest.approx([2 * d0, 2 * d0], rel=0.2)

@@ -25,9 +25,6 @@ def test_ring_angles_and_unit_directions():
     assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
     off_axis = np.arccos(np.clip(dirs @ d[0], -1, 1))
     assert np.allclose(np.sort(off_axis), np.sort(ang), atol=1e-9)
-    # physical ring scale halves the extent
-    phys = subray_pattern(3, 0.3, ring_scale="physical")
-    assert np.allclose(np.abs(phys.offsets), np.abs(pat.offsets) / 2)
 
 
 def test_gaussian_weights_follow_profile():

@@ -29,8 +29,9 @@ def _wire_box(x_c, width, y0, y1, z):
     return v, np.array(f)
 
 
+# geometry tests: a nadir beam without range noise (the presets carry their datasheet accuracy)
 NADIR = {"prf_hz": 20000, "scan_freq_hz": 20, "scan_angle_deg": 0.02, "max_scan_angle_deg": 0.02,
-         "range_min_m": 0.0}
+         "range_min_m": 0.0, "range_noise_m": 0.0}
 
 
 def test_plane_at_nadir_one_return_exact_range():
@@ -153,7 +154,8 @@ def test_elliptical_beam_wire_widths_ratio():
 
 
 @pytest.mark.parametrize("scanner,ov,share", [
-    ("riegl_vq780i", {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0}, 1.0),
+    # the polygon mirror sweeps the device's ±45° and emits within ±30°
+    ("riegl_vq780i", {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0}, 60 / 90),
     ("riegl_minivux1uav", {"prf_hz": 20000, "scan_freq_hz": 50, "scan_angle_deg": 30.0}, 60 / 360),
 ])
 def test_ground_density_matches_analytic(scanner, ov, share):
@@ -264,7 +266,7 @@ def test_threshold_removes_weakest_first():
     ijk = np.unique(np.floor(cen / 0.5).astype(int), axis=0)
     sc.add_voxels(2, ijk, np.zeros(3), 0.5, material=Material(0.6))
     ov = {"prf_hz": 20000, "scan_freq_hz": 40, "scan_angle_deg": 10.0, "max_scan_angle_deg": 10.0,
-          "range_min_m": 0.0}
+          "range_min_m": 0.0, "range_noise_m": 0.0}
     sv = _survey(ov, _line(-4, 4, 80.0), speed=4.0)
     base = simulate(sc, sv, workers=1, keep_hits=True)
     amp = base.points["amplitude"]
@@ -369,3 +371,71 @@ def test_region_traces_only_pulses_reaching_it():
     assert len(x) < 0.6 * len(full.points["xyz"]) and x.min() > -0.1  # beams that miss x ≥ 0: not traced
     keep = full.points["xyz"][:, 0] > 0.1
     assert np.array_equal(np.sort(full.points["pulse"][keep]), np.sort(part.points["pulse"][part.points["xyz"][:, 0] > 0.1]))
+
+
+@pytest.mark.parametrize("scanner,convention,datasheet", [
+    ("riegl_vq780i", "beam_divergence_full_1e2_mrad", (0.25, 0.25)),      # full angle at 1/e²
+    ("riegl_minivux1uav", "beam_divergence_fwhm_mrad", (1.6, 0.5)),       # full angle at 50 % peak
+])
+def test_real_beam_footprint_has_the_datasheet_diameter(scanner, convention, datasheet):
+    """A datasheet beam entered in its convention lights a plane with a Gaussian energy footprint
+    whose 1/e² diameter is θ·R on both axes (θ the full angle at 1/e²)."""
+    from vlsforest.sim.beam import subray_directions, subray_pattern
+    from vlsforest.sim.waveform import hit_energy
+
+    # θ at 1/e² from the datasheet: a Gaussian I = exp(-2 r²/w²) is at half maximum at
+    # r = w·sqrt(ln 2 / 2), so θ_1/e² = FWHM · 2 / sqrt(2 ln 2)
+    factor = 1.0 if convention == "beam_divergence_full_1e2_mrad" else 2.0 / np.sqrt(2.0 * np.log(2.0))
+    theta = np.array(datasheet) * 1e-3 * factor
+    h = 100.0
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    ov = dict(NADIR, beam_sample_quality=10, range_noise_m=0.0, **{convention: list(datasheet)})
+    sv = _survey(ov, _line(-0.5, 0.5, h), scanner=scanner)
+    pulses, hits = trace_hits(sc, sv, workers=1)
+    s = sv.scanner
+    pat = subray_pattern(s.beam_sample_quality, s.beam_divergence_mrad, s.beam_orientation_deg)
+    assert pat.n == 271 and len(pulses["slot"]) >= 3
+    dirs = subray_directions(pulses["direction"], pulses["scan_dir"], pat)
+    p, k = hits["pulse"], hits["subray"]
+    xyz = pulses["origin"][p] + hits["range"][:, None] * dirs[p, k]
+    assert np.allclose(xyz[:, 2], 0.0, atol=1e-6)
+    centre = pulses["origin"][p] + (h / -pulses["direction"][p, 2])[:, None] * pulses["direction"][p]
+    along = np.einsum("ij,ij->i", xyz - centre, pulses["scan_dir"][p])   # the major axis (orientation 0)
+    across = np.einsum("ij,ij->i", xyz - centre, np.cross(pulses["direction"][p], pulses["scan_dir"][p]))
+    energy = hit_energy(hits["range"], k, hits["cos_inc"], hits["part"], pat.frac, np.array([30.0]),
+                        np.array([0.0]), np.array([10.0]), pat.n, average_power_w=s.average_power_w,
+                        receiver_diameter_m=s.receiver_diameter_m, optical_efficiency=s.optical_efficiency,
+                        range0=s.range_min_m, m2=s.beam_quality_factor)
+    # ln E = c − 2 x²/wx² − 2 y²/wy²: least squares for the 1/e² radii
+    a = np.column_stack([np.ones(len(energy)), along ** 2, across ** 2])
+    coef = np.linalg.lstsq(a, np.log(energy), rcond=None)[0]
+    wx, wy = np.sqrt(-2.0 / coef[1]), np.sqrt(-2.0 / coef[2])
+    assert 2 * wx == pytest.approx(theta[0] * h, rel=0.05)
+    assert 2 * wy == pytest.approx(theta[1] * h, rel=0.05)
+
+
+def test_uls_canopy_intensities_do_not_saturate():
+    """The study's ULS over a foliage canopy: LAS intensities follow the amplitudes without
+    clipping (HELIOS++'s scale 65,535 / 10⁶), the float amplitude is kept."""
+    from vlsforest.sim.waveform import las_intensity
+
+    rng = np.random.default_rng(1)
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-30, -30, 30, 30], Material(0.3))
+    cen = rng.uniform([-8, -8, 8], [8, 8, 20], size=(3000, 3))
+    ijk = np.unique(np.floor(cen / 0.25).astype(int), axis=0)
+    sc.add_voxels(2, ijk, np.zeros(3), 0.25, material=Material(0.45))
+    ov = {"prf_hz": 20000, "window_size_ns": 1.5}
+    sv = _survey(ov, _line(-3, 3, 70.0), speed=5.0, scanner="riegl_minivux1uav", detector={"mode": "helios_v1"})
+    pts = simulate(sc, sv, workers=1).points
+    amp = pts["amplitude"].astype(np.float64)
+    assert len(amp) > 500
+    # echoes strong enough to have saturated a 16-bit count of raw amplitudes exist ...
+    assert (amp > 65535).mean() > 0.1
+    # ... and none is clipped: the intensity is the amplitude scaled, in the amplitude's order
+    assert amp.max() < 1e6 and pts["intensity"].max() < 65535
+    assert np.array_equal(pts["intensity"], las_intensity(amp))
+    assert np.abs(pts["intensity"] - amp * 65535 / 1e6).max() < 1.0
+    order = np.argsort(amp, kind="stable")
+    assert np.all(np.diff(pts["intensity"][order].astype(int)) >= 0)

@@ -11,6 +11,10 @@ import pytest
 from vlsforest.errors import ConfigError
 from vlsforest.sim.scanner import (
     PRESETS,
+    REAL_BEAMS,
+    datasheet_divergence,
+    deflect,
+    emission_half_angle_deg,
     fwhm_to_1e2,
     scanner_from_dict,
     scanner_from_preset,
@@ -70,12 +74,53 @@ def test_presets_load_and_validate():
         assert scanner_from_preset(name, {}) == preset
     vq = PRESETS["riegl_vq780i"]
     assert (vq.deflector, vq.prf_hz, vq.scan_freq_hz, vq.scan_angle_deg) == ("polygon", 1e6, 250.0, 30.0)
+    # HELIOS++ 1.0.8's riegl_vq_780i: scanAngleMax 45°, scanAngleEffectiveMax 30°, accuracy 0.02 m
+    assert (vq.max_scan_angle_deg, vq.effective_max_scan_angle_deg, vq.range_noise_m) == (45.0, 30.0, 0.02)
     assert vq.beam_divergence_mrad == (0.25, 0.25) and vq.window_size_ns == 1.75
     uls = PRESETS["riegl_minivux1uav"]
-    assert (uls.deflector, uls.prf_hz, uls.scan_freq_hz, uls.max_scan_angle_deg) == ("rotating", 1e5, 50.0, 90.0)
-    assert uls.beam_divergence_mrad == (0.5, 0.5) and uls.window_size_ns == 1.5
+    assert (uls.deflector, uls.prf_hz, uls.scan_freq_hz, uls.max_scan_angle_deg) == ("rotating", 1e5, 50.0, 180.0)
+    assert uls.beam_divergence_mrad == (0.5, 0.5) and uls.window_size_ns == 1.5 and uls.range_noise_m == 0.015
     tls = PRESETS["riegl_vz400"]
     assert tls.deflector == "tls" and tls.tls_v_fov_deg == (-40.0, 60.0) and tls.tls_h_fov_deg == (0.0, 360.0)
+    # the VZ-400 datasheet: 0.35 mrad full angle at 1/e², 7 mm exit diameter, 5 mm accuracy
+    assert 2 * tls.beam_divergence_mrad[0] == pytest.approx(0.35) and tls.beam_exit_diameter_m == 0.007
+    assert tls.range_noise_m == 0.005
+
+
+def test_vq780i_emits_two_thirds_of_its_prf():
+    """The mirror sweeps ±45° at 250 lines/s and 1 MHz (4,000 slots per line); the device emits
+    within ±30°: 2/3 of the slots, 2,667 per line, 666,667 per second."""
+    vq = PRESETS["riegl_vq780i"]
+    emitted, _, _, angle = deflect(vq, np.arange(1_000_000))
+    per_line = emitted.reshape(250, 4000).sum(axis=1)
+    # nodes -45 + 90·j/4000 within [-30, 30]: j = 667 … 3333, i.e. 2,667 per line
+    assert np.all(per_line == 2667)
+    assert emitted.sum() == 250 * 2667
+    assert emitted.sum() / 1e6 == pytest.approx(2.0 / 3.0, abs=1e-3)
+    assert np.abs(angle).max() <= 30.0 + 1e-9 and emission_half_angle_deg(vq) == 30.0
+    # the same through a survey's compiled pulse path, over one second of flight
+    s = survey_from_dict(airborne("riegl_vq780i", legs=[{"start": [0, 0, 700], "end": [0, 51, 700]}], speed=51.0))
+    assert s.n_slots == 1_000_000
+    assert len(all_pulses(s)) == 250 * 2667
+    assert len(s.pulses_toward(0, s.n_slots, [-1e4, -1e4, -1e4], [1e4, 1e4, 1e4], 0.0)[2]) == 250 * 2667
+
+
+def test_datasheet_divergences_are_stored_as_the_half_angle():
+    assert datasheet_divergence(full_1e2_mrad=0.25) == (0.125, 0.125)
+    major, minor = datasheet_divergence(fwhm_mrad=(1.6, 0.5))
+    # 1.6 × 0.5 mrad at 50 % peak intensity = 2.718 × 0.849 mrad at 1/e², halved
+    assert (major, minor) == pytest.approx((2.718 / 2, 0.849 / 2), abs=1e-3)
+    s = scanner_from_preset("riegl_minivux1uav", {"beam_divergence_fwhm_mrad": [1.6, 0.5]})
+    assert s.beam_divergence_mrad == pytest.approx((major, minor))
+    s = scanner_from_preset("riegl_vq780i", {"beam_divergence_full_1e2_mrad": 0.25})
+    assert s.beam_divergence_mrad == (0.125, 0.125)
+    assert datasheet_divergence(**REAL_BEAMS["riegl_vz400"]) == pytest.approx(PRESETS["riegl_vz400"].beam_divergence_mrad)
+    spec = {k: v for k, v in custom("conic").items() if k != "beam_divergence_mrad"}
+    assert scanner_from_dict(spec | {"beam_divergence_full_1e2_mrad": 1.0}).beam_divergence_mrad == (0.5, 0.5)
+    with pytest.raises(ConfigError, match="once"):
+        scanner_from_preset("riegl_vq780i", {"beam_divergence_mrad": 0.2, "beam_divergence_fwhm_mrad": 0.2})
+    with pytest.raises(ConfigError, match=r"overrides\.beam_divergence_fwhm_mrad"):
+        scanner_from_preset("riegl_vq780i", {"beam_divergence_fwhm_mrad": 0})
 
 
 def test_fwhm_to_1e2_matches_a_numeric_gaussian():
@@ -111,6 +156,8 @@ BAD_OVERRIDES = [
     ("riegl_vq780i", {"beam_sample_quality": 2.5}, "overrides.beam_sample_quality"),
     ("riegl_vq780i", {"window_size_ns": -0.1}, "overrides.window_size_ns"),
     ("riegl_vq780i", {"scan_angle_deg": 31}, "overrides.scan_angle_deg"),
+    ("riegl_vq780i", {"effective_max_scan_angle_deg": 46}, "overrides.effective_max_scan_angle_deg"),
+    ("riegl_vq780i", {"max_scan_angle_deg": 91}, "overrides.max_scan_angle_deg"),
     ("riegl_vq780i", {"scan_angle_deg": 0}, "overrides.scan_angle_deg"),
     ("riegl_vq780i", {"max_returns": -1}, "overrides.max_returns"),
     ("riegl_vq780i", {"atmosphere": "yes"}, "overrides.atmosphere"),
@@ -416,16 +463,17 @@ def test_flat_ground_footprint_spacing():
     s = survey_from_dict(airborne("riegl_vq780i", legs=[{"start": [0, 0, h], "end": [0, 10.2, h]}], speed=speed))
     b = all_pulses(s)
     p = ground_hits(b)
-    # across track at nadir: altitude × angular step (60° / 4000 pulses per line)
-    dtheta = math.radians(60.0 / 4000)
-    line0 = p[:4000]
+    # across track at nadir: altitude × angular step (the mirror's 90° over 4000 slots per line,
+    # of which the 2667 within ±30° are emitted)
+    dtheta = math.radians(90.0 / 4000)
+    line0 = p[:2667]
     mid = np.argmin(np.abs(line0[:, 0]))
     spacing = line0[mid + 1, 0] - line0[mid, 0]
     assert spacing == pytest.approx(h * dtheta, rel=1e-3)
     # along track: lines are speed/scan_freq apart
-    line1 = p[4000:8000]
+    line1 = p[2667:2 * 2667]
     assert line1[mid, 1] - line0[mid, 1] == pytest.approx(speed / 250.0, rel=1e-9)
-    # within one line the spot drifts by speed/PRF per pulse
+    # within one line the spot drifts by speed/PRF per slot
     assert line0[mid + 1, 1] - line0[mid, 1] == pytest.approx(speed / 1e6, rel=1e-6)
     # swath: ±30° → 2 h tan 30°; the ground points span it up to one across-track step
     sw = s.swath_width(0.0)

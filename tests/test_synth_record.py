@@ -14,7 +14,6 @@ from vlsforest.cli import main
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import read_las
 from vlsforest.sim import Scene, simulate
-from vlsforest.sim.scanner import fwhm_to_1e2
 from vlsforest.sim.survey import survey_from_dict
 from vlsforest.synth import record as R
 
@@ -129,30 +128,76 @@ def _plot(extent=(-30.0, -25.0, 30.0, 25.0)):
     return SimpleNamespace(name="P1", extent=extent, ground_z=lambda: 0.0)
 
 
-@pytest.mark.parametrize("sensor,lo,hi", [("als", 70, 80), ("uls", 800, 1200)])
-def test_open_ground_pulse_density(sensor, lo, hi):
-    """Pulses per m² on open ground with the default campaign (one ray per pulse: the density
-    does not depend on the footprint sampling)."""
+def _open_ground_density(sensor, campaign, extent=300):
     sc = Scene()
-    sc.add_plane(1, 0.0, [-300, -300, 300, 300])
+    sc.add_plane(1, 0.0, [-extent, -extent, extent, extent])
     xyz = []
-    for sv in R.airborne_survey(_plot(), sensor, R.DEFAULT_CAMPAIGN[sensor], {"beam_sample_quality": 1}, 0):
+    for sv in R.airborne_survey(_plot(), sensor, campaign, {"beam_sample_quality": 1}, 0):
         xyz.append(simulate(sc, survey_from_dict(sv), keep_pulses=False).points["xyz"])
     xyz = np.vstack(xyz)
     inside = (np.abs(xyz[:, 0]) < 15) & (np.abs(xyz[:, 1]) < 15)
-    density = inside.sum() / 900.0
-    assert lo <= density <= hi, density
+    return inside.sum() / 900.0
+
+
+def test_open_ground_pulse_density_uls():
+    """Pulses per m² on open ground with the default ULS campaign (one ray per pulse: the
+    density does not depend on the footprint sampling): the study's 800–1200 pulses/m²."""
+    density = _open_ground_density("uls", R.DEFAULT_CAMPAIGN["uls"])
+    assert 800 <= density <= 1200, density
+
+
+def test_open_ground_pulse_density_als():
+    """The ALS campaign's density where the plot falls between its lines: the study's 70–80
+    returns/m² on average over where the line block lies relative to the plot (the campaign's
+    density); at any one offset it lies between the densities of a plot under a line and of one
+    midway between two lines."""
+    camp = dict(R.DEFAULT_CAMPAIGN["als"], random_line_offset=False)
+    spacing = camp["line_spacing_m"]
+    dens = [_open_ground_density("als", dict(camp, line_offset_m=o), extent=700)
+            for o in np.arange(4) * spacing / 8]  # 0 … 3/8 spacing: by symmetry, half a period
+    assert 70 <= np.mean(dens) <= 80, dens
+    # the block covers the plot with every strip that reaches it: more lines add no strip (the
+    # same lines may be flown the other way, which moves the scan pattern along track and
+    # changes the count at the square's edges by a row of points at most: ≈ 0.2 m of 30 m)
+    more = _open_ground_density("als", dict(camp, line_offset_m=0.0, n_lines=camp["n_lines"] + 2), extent=900)
+    assert more == pytest.approx(dens[0], rel=0.2 / 30)
+    # the seeded offset of a plot is drawn in [0, spacing), and differs between plots
+    offsets = {name: survey_offset(name) for name in ("P1", "P2", "P3")}
+    assert all(0 <= o < spacing for o in offsets.values()) and len(set(offsets.values())) == 3
+
+
+def survey_offset(name):
+    """The across-track position of the first ALS line of plot ``name`` (default campaign)."""
+    sv = R.airborne_survey(_plot_named(name), "als", R.DEFAULT_CAMPAIGN["als"], {}, 0)[0]
+    xs = sorted({leg["start"][0] for leg in sv["platform"]["legs"] if leg["active"]})
+    centred = (np.arange(len(xs)) - (len(xs) - 1) / 2) * R.DEFAULT_CAMPAIGN["als"]["line_spacing_m"]
+    return float(np.mean(np.array(xs) - centred))
+
+
+def _plot_named(name):
+    return SimpleNamespace(name=name, extent=(-30.0, -25.0, 30.0, 25.0), ground_z=lambda: 0.0)
 
 
 def test_real_uls_beam_is_elliptical_and_als_circular():
     phys = R.DEFAULT_RECORDING_PHYSICS
     uls = survey_from_dict(R.airborne_survey(_plot(), "uls", R.DEFAULT_CAMPAIGN["uls"], phys["uls"], 0)[0])
     als = survey_from_dict(R.airborne_survey(_plot(), "als", R.DEFAULT_CAMPAIGN["als"], phys["als"], 0)[0])
+    # the datasheet beams as 1/e² half angles: miniVUX 1.6 × 0.5 mrad FWHM = 2.718 × 0.849 mrad
+    # full at 1/e² (× 2/√(2 ln 2)); VQ-780i 0.25 mrad full at 1/e²
     major, minor = uls.scanner.beam_divergence_mrad
-    assert major == pytest.approx(fwhm_to_1e2(1.6)) and minor == pytest.approx(fwhm_to_1e2(0.5))
-    assert als.scanner.beam_divergence_mrad[0] == als.scanner.beam_divergence_mrad[1]
+    assert (2 * major, 2 * minor) == pytest.approx((2.7178, 0.8493), abs=1e-3)
+    assert als.scanner.beam_divergence_mrad == pytest.approx((0.125, 0.125))
     assert uls.scanner.beam_sample_quality >= 4 and als.scanner.beam_sample_quality >= 4  # ≥ 37 sub-rays
-    assert uls.scanner.min_energy > 0 and uls.scanner.range_noise_m > 0
+    # the datasheets' ranging accuracy, the recordings' physical detector
+    assert (als.scanner.range_noise_m, uls.scanner.range_noise_m) == (0.02, 0.015)
+    assert uls.scanner.min_energy > 0 and als.detector == uls.detector == {"mode": "physical"}
+
+
+def test_uls_recording_flies_p2s_second_grid_at_4_mps():
+    camp = R.DEFAULT_CAMPAIGN["uls"]
+    speeds = {name: [s["platform"]["speed_mps"] for s in R.airborne_survey(_plot_named(name), "uls", camp, {}, 0)]
+              for name in ("P1", "P2")}
+    assert speeds == {"P1": [5.0, 5.0], "P2": [5.0, 4.0]}
 
 
 @pytest.mark.parametrize("phys,needle", [

@@ -462,6 +462,29 @@ def test_survey_from_trajectory():
         survey_from_trajectory({"scanner": "riegl_vq780i"}, traj.drop(columns="source_id"))
 
 
+def test_reflown_lines_keep_their_own_speeds():
+    """Two lines recorded at 5 and 4 m/s (as P2's two ULS grids): each is re-flown at its own
+    speed, so its pulses per metre and its duration match the recording."""
+    from vlsforest.sim.planning import survey_from_trajectory
+    from vlsforest.sim.survey import survey_from_dict
+
+    rows = []
+    for sid, (speed, y) in enumerate([(5.0, 0.0), (4.0, 30.0)], start=1):
+        for tt in np.arange(0, 10.01, 0.1):
+            rows.append({"gps_time": 100.0 * sid + tt, "x": speed * tt, "y": y, "z": 70.0, "source_id": sid})
+    s = survey_from_trajectory({"scanner": "riegl_minivux1uav"}, pd.DataFrame(rows))
+    active = [lg for lg in s["platform"]["legs"] if lg["active"]]
+    assert [lg["speed_mps"] for lg in active] == pytest.approx([5.0, 4.0])
+    sv = survey_from_dict(s)
+    lines = [lg for lg in sv.legs if lg.active]
+    # 50 m at 5 m/s and 40 m at 4 m/s: both lines take 10 s, i.e. 10⁶ slots at 100 kHz
+    assert [lg.duration_s for lg in lines] == pytest.approx([10.0, 10.0])
+    assert [lg.n_slots for lg in lines] == [1_000_000, 1_000_000]
+    b = sv.pulses(lines[1].slot_offset, lines[1].slot_offset + 2000)
+    step = np.linalg.norm(np.diff(b.origin[[0, -1]], axis=0)) / (b.gps_time[-1] - b.gps_time[0])
+    assert step == pytest.approx(4.0, rel=1e-9)
+
+
 def test_extract_reference_cli_drops_ground_and_rejects_bad_classes(tmp_path, capsys):
     import pandas as pd
 

@@ -10,17 +10,26 @@ id                        parameter(s)            group        render          p
 ========================  ======================  ===========  ==============  =====================
 ``beam_divergence``       ``scale``               footprint    re-trace        0.5 – 4
 ``elliptical_footprint``  ``major_mrad``,         footprint    re-trace        aspect major/minor
-                          ``minor_mrad`` (FWHM)                                1 – 6 (searched)
+                          ``minor_mrad`` (full                                 1 – 6 (searched)
+                          angle at 50 % peak)
 ``detection_threshold``   ``min_energy``          link budget  stored hits     0 – 1e5 (amplitude)
 ``reflectance``           ``scale`` (all parts)   link budget  stored hits     0.2 – 2
 ``incidence_reflectance`` ``specularity``         link budget  stored hits     0 – 0.9 (Phong ks,
                           (shininess 10)                                       all parts)
 ``waveform_window``       ``window_ns``           dead zone    stored hits     0.5 – 6 ns
 ``max_returns``           ``n``                   dead zone    stored hits     1 – 7
+``peak_rule``             ``physical``            dead zone    stored hits     0 (HELIOS++ 1.0.8
+                                                                               rule) or 1 (physical)
 ``range_noise``           ``sigma_m``             noise        stored hits     0 – 0.25 m
 ``trajectory_noise``      ``position_sigma_m``    noise        re-trace        0 – 0.3 m
 ``tls_occlusion``         ``top_gain``            model input  re-trace        0 – 8
 ========================  ======================  ===========  ==============  =====================
+
+``peak_rule`` is the detector's rule for a waveform peak: HELIOS++ 1.0.8 accepts a peak only
+when every neighbour in its window is itself above the threshold, so an echo that does not
+overlap earlier energy is dropped for windows of 6 bins or more (the study's 1.5 and 1.75 ns);
+a physical detector reports it. Its parameter is 0 for the HELIOS++ rule and 1 for the physical
+one (``detector.peak_rule`` of the survey).
 
 ``tls_occlusion`` is the one model-input candidate: the TLS sees the upper crown through the
 lower one, so PAD is under-estimated there (Weiser et al. 2021, §4) and PAD-scaled cubes come out
@@ -51,14 +60,16 @@ import numpy as np
 
 from vlsforest.errors import ConfigError
 
-from vlsforest.sim.scanner import fwhm_to_1e2
+from vlsforest.sim.scanner import datasheet_divergence, fwhm_to_1e2
 
-#: FWHM → 1/e² full-width factor of a Gaussian beam (√(2 / ln 2) ≈ 1.699)
-_FWHM_TO_1E2 = float(fwhm_to_1e2(1.0))
+#: a ``beam_divergence_mrad`` value (the HELIOS++ 1/e² half angle) → the full angle at 50 % peak
+#: intensity: 2 / √(2 / ln 2) ≈ 1.177
+_HALF_1E2_TO_FWHM = 2.0 / float(fwhm_to_1e2(1.0))
 
 
 def _divergence(survey: dict) -> tuple[float, float]:
-    """The survey's beam divergence (major, minor) in mrad at 1/e²: its override, else the preset's."""
+    """The survey's ``beam_divergence_mrad`` (major, minor; the HELIOS++ 1/e² half angle): its
+    override, else the preset's."""
     from vlsforest.sim.scanner import PRESETS
 
     div = (survey.get("overrides") or {}).get("beam_divergence_mrad",
@@ -135,11 +146,13 @@ class Candidate:
         tn = survey.get("trajectory_noise") or {}
         return {
             "beam_divergence": {"scale": 1.0},
-            "elliptical_footprint": {"major_mrad": div[0] / _FWHM_TO_1E2, "minor_mrad": div[1] / _FWHM_TO_1E2},
+            "elliptical_footprint": {"major_mrad": div[0] * _HALF_1E2_TO_FWHM,
+                                     "minor_mrad": div[1] * _HALF_1E2_TO_FWHM},
             "detection_threshold": {"min_energy": float(ov.get("min_energy", pre.min_energy))},
             "reflectance": {"scale": 1.0},
             "waveform_window": {"window_ns": float(ov.get("window_size_ns", pre.window_size_ns))},
             "max_returns": {"n": float(ov.get("max_returns", pre.max_returns) or 7)},
+            "peak_rule": {"physical": float(_peak_rule(survey) == "physical")},
             "range_noise": {"sigma_m": float(ov.get("range_noise_m", pre.range_noise_m))},
             "trajectory_noise": {"position_sigma_m": float(tn.get("position_sigma_m", 0.0))},
             "incidence_reflectance": {"specularity": 0.0},
@@ -220,7 +233,8 @@ class Candidate:
             div = _divergence(s)
             ov["beam_divergence_mrad"] = [div[0] * values["scale"], div[1] * values["scale"]]
         elif self.name == "elliptical_footprint":
-            ov["beam_divergence_mrad"] = [values["major_mrad"] * _FWHM_TO_1E2, values["minor_mrad"] * _FWHM_TO_1E2]
+            ov["beam_divergence_mrad"] = list(datasheet_divergence(fwhm_mrad=(values["major_mrad"],
+                                                                               values["minor_mrad"])))
             ov["beam_orientation_deg"] = 0.0
         elif self.name == "detection_threshold":
             ov["min_energy"] = float(values["min_energy"])
@@ -236,6 +250,9 @@ class Candidate:
             ov["max_returns"] = int(round(values["n"]))
         elif self.name == "range_noise":
             ov["range_noise_m"] = float(values["sigma_m"])
+        elif self.name == "peak_rule":
+            s["detector"] = dict(s.get("detector") or {},
+                                 peak_rule="physical" if round(float(values["physical"])) else "helios")
         elif self.name == "trajectory_noise":
             tn = dict(s.get("trajectory_noise") or {})
             tn["position_sigma_m"] = float(values["position_sigma_m"])
@@ -264,6 +281,9 @@ CANDIDATES = {c.name: c for c in (
               "a longer peak-detection window (dead zone between echoes of a pulse)"),
     Candidate("max_returns", (Param("n", 1.0, 7.0, -2.0, integer=True),), "dead zone", "hits",
               "the receiver reports fewer returns per pulse"),
+    Candidate("peak_rule", (Param("physical", 0.0, 1.0, 1.0, integer=True),), "dead zone", "hits",
+              "the detector reports echoes that do not overlap earlier energy (a physical peak rule), "
+              "which HELIOS++ 1.0.8's rule drops"),
     Candidate("range_noise", (Param("sigma_m", 0.0, 0.25, 0.05),), "noise", "hits",
               "random range error of each echo"),
     Candidate("trajectory_noise", (Param("position_sigma_m", 0.0, 0.3, 0.05),), "noise", "trace",
@@ -339,9 +359,17 @@ def merge(base: dict, name: str, values: dict) -> dict:
 
 
 def beam_fwhm(survey: dict, assign: dict) -> tuple[float, float]:
-    """The beam (major, minor) divergence in mrad at FWHM of ``survey`` with ``assign`` applied."""
+    """The beam (major, minor) of ``survey`` with ``assign`` applied, as full angles at 50 % peak
+    intensity (mrad)."""
     major, minor = _divergence(apply_all(survey, assign)[0])
-    return major / _FWHM_TO_1E2, minor / _FWHM_TO_1E2
+    return major * _HALF_1E2_TO_FWHM, minor * _HALF_1E2_TO_FWHM
+
+
+def _peak_rule(survey: dict) -> str:
+    """The peak rule the survey's detector runs (``"physical"`` or ``"helios"``)."""
+    from vlsforest.sim.engine import DetectorOptions
+
+    return DetectorOptions.from_dict(survey.get("detector")).peak_rule
 
 
 def equivalent_circular_divergence(survey: dict, assign: dict) -> float:

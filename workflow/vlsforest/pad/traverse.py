@@ -7,7 +7,8 @@ weight, and whether it counts as a plant hit). :func:`load_tls_scans` reads a TL
 
     scan_{k}.laz            all returns; gps_time, return_number/number_of_returns
     scan_{k}.survey.yaml    the scan's survey (optional): every emitted pulse, empty ones included
-    scans.csv               scan_id, x, y, z, …, gps_time_start (scanner positions)
+    scans.csv               scan_id, x, y, z, …, gps_time_start (scanner positions); optional
+                            beam_divergence_full_1e2_mrad, beam_exit_diameter_m, scanner
 
 With a survey file, every shot of the scan pattern is rebuilt with
 :meth:`vlsforest.sim.survey.Survey.pulses` and the echoes are matched to their pulse by GPS
@@ -40,8 +41,13 @@ in order; an echo at range r belongs to the cell whose parameter interval ``(t_i
 holds r (an echo on a shared face belongs to the cell the ray leaves). In each cell, the free
 paths are one per echo (length ``r − t_in``, the echo's weight) plus the exiting remainder
 (length ``l = t_out − t_in``) when more than 1e-5 of the beam is left. The beam section at the
-cell centre is ``S = π (tan(δ/2)·d + D0/2)²`` (δ full divergence, D0 exit diameter, d the range
-of the cell centre); with δ = D0 = 0, S = 1. Accumulated per voxel (see :class:`Accumulators`):
+cell centre is ``S = π (tan(δ/2)·d + D0/2)²`` (δ the full divergence at 1/e², D0 the exit
+diameter, d the range of the cell centre), as in AMAPVox's laser specification (its VZ-400 entry:
+D0 = 7 mm, δ = 0.35 mrad). δ and D0 are the scanner's: with a survey file its scanner's datasheet
+beam (``2 × beam_divergence_mrad`` and ``beam_exit_diameter_m`` of
+:class:`~vlsforest.sim.scanner.ScannerSettings`); without one the ``scans.csv`` columns
+``beam_divergence_full_1e2_mrad`` and ``beam_exit_diameter_m``, defaulting to those of the preset
+named in its ``scanner`` column, else of the study's ``riegl_vz400``. With δ = D0 = 0, S = 1. Accumulated per voxel (see :class:`Accumulators`):
 shot count, potential path length, zenith angles, entering and intercepted beam section, the
 FPL sums ``Σ bf·S·l_eff`` (all free paths and hits only) with the finite-leaf effective length
 ``l_eff = −ln(1 − λ₁ z)/λ₁``, λ₁ = 0.25·mean_leaf_area/V, and, for voxels holding plant echoes,
@@ -223,11 +229,12 @@ def _shots_from_survey(cloud, yaml_path: Path, row, las_path: Path, ground_class
     rng = np.einsum("ij,ij->i", cloud.xyz - o, d)
     order, ptr, counts = _csr(best, rng, n)
     hit = _hit_mask(cloud, ground_classes)
-    div = float(survey.scanner.beam_divergence_mrad[0]) * 1e-3
+    div = 2.0 * float(survey.scanner.beam_divergence_mrad[0]) * 1e-3  # the 1/e² half angle → full
     return TlsScan(scan_id=0, source=str(las_path), origin=pulses.origin.astype(np.float64),
                    direction=pulses.direction.astype(np.float64), shot_ptr=ptr,
                    echo_range=rng[order], echo_weight=_weights(ptr, counts), echo_hit=hit[order],
-                   beam_divergence_rad=div, empty_shots=True,
+                   beam_divergence_rad=div, exit_diameter_m=float(survey.scanner.beam_exit_diameter_m),
+                   empty_shots=True,
                    range_min_m=float(survey.scanner.range_min_m))
 
 
@@ -261,13 +268,48 @@ def _shots_from_points(cloud, row, las_path: Path, ground_classes) -> TlsScan:
     order, ptr, counts = _csr(shot, rng, n)
     last = order[ptr[1:] - 1]  # farthest echo of each shot gives the direction
     direction = v[last] / rng[last, None]
-    div = float(row["beam_divergence_mrad"]) * 1e-3 if "beam_divergence_mrad" in row.index else 0.0
-    if not np.isfinite(div) or div < 0:
-        div = 0.0
+    div, d0 = scan_beam(row, las_path)
     return TlsScan(scan_id=0, source=str(las_path), origin=np.broadcast_to(pos, (n, 3)).copy(),
                    direction=direction, shot_ptr=ptr, echo_range=rng[order],
                    echo_weight=_weights(ptr, counts), echo_hit=_hit_mask(cloud, ground_classes)[order],
-                   beam_divergence_rad=div, empty_shots=False)
+                   beam_divergence_rad=div, exit_diameter_m=d0, empty_shots=False)
+
+
+#: the scanner preset whose beam a scans.csv row without beam columns or ``scanner`` gets
+DEFAULT_TLS_SCANNER = "riegl_vz400"
+
+
+def scan_beam(row, source) -> tuple[float, float]:
+    """The beam of one scan from its ``scans.csv`` row: (full 1/e² divergence in rad, exit
+    diameter in m); missing columns come from the preset in the ``scanner`` column, else
+    :data:`DEFAULT_TLS_SCANNER`.
+
+    Raises
+    ------
+    InputDataError
+        A value that is not a finite number ≥ 0, or an unknown ``scanner`` (naming ``source``).
+    """
+    from vlsforest.sim.scanner import PRESETS
+
+    name = DEFAULT_TLS_SCANNER
+    if row is not None and "scanner" in row.index and isinstance(row["scanner"], str) and row["scanner"]:
+        name = row["scanner"]
+        if name not in PRESETS:
+            raise InputDataError(f"{source}: scans.csv names an unknown scanner {name!r} "
+                                 f"(known: {', '.join(sorted(PRESETS))})")
+    pre = PRESETS[name]
+    vals = {"beam_divergence_full_1e2_mrad": 2.0 * pre.beam_divergence_mrad[0],
+            "beam_exit_diameter_m": pre.beam_exit_diameter_m}
+    for key in vals:
+        if row is not None and key in row.index and not pd.isna(row[key]):
+            try:
+                v = float(row[key])
+            except (TypeError, ValueError):
+                v = float("nan")
+            if not (math.isfinite(v) and v >= 0):
+                raise InputDataError(f"{source}: scans.csv column {key} must be a number ≥ 0 (got {row[key]!r})")
+            vals[key] = v
+    return vals["beam_divergence_full_1e2_mrad"] * 1e-3, vals["beam_exit_diameter_m"]
 
 
 def _drop_blind_shots(scans: list[TlsScan], radius: float, step: float = 0.02) -> None:

@@ -7,17 +7,17 @@ azimuth 0, at the fractional radius ``k / Q`` of the sampled beam extent.
 
 Beam extent
 -----------
-``beam_divergence_mrad`` is the *full* angle at 1/e² of the peak intensity; an elliptical
-beam has a major and a minor full angle and an orientation of the major axis relative to the
-scan direction. HELIOS++ v1.0 uses its single ``beamDivergence`` as the 1/e² *half* angle
-when it places rings and weights them (the outer ring of Q = 3 sits at 2/3 of the full angle,
-beyond the nominal beam edge; quirk 2 of the reference notes) but as the full angle in its
-footprint-area formula. ``ring_scale="helios"`` reproduces that placement; ``"physical"``
-places the rings inside the nominal 1/e² half angle (``k/Q · div/2``). In both cases the
-Gaussian weight of a sub-ray is the beam profile evaluated at its own angular offset, so the
-weights read ``exp(-2 (k/Q)² M² R²/(R² + R0²))`` (1, 0.80, 0.41 for Q = 3, R ≫ R0).
-An elliptical beam scales the ring pattern along its two axes, so each sub-ray sits on the
-ellipse ``k/Q`` of the footprint and carries the same weight as on a circular beam.
+``beam_divergence_mrad`` (``div``) is HELIOS++'s ``beamDivergence``: ring k sits at the angle
+``k/Q · div`` off the axis and its Gaussian weight is the beam profile there,
+``exp(-2 (k/Q)² M² R²/(R² + R0²))`` (1, 0.80, 0.41 for Q = 3, R ≫ R0), so the weight falls to
+1/e² at ``div`` off the axis: ``div`` is the beam's 1/e² **half** angle, and its 1/e² energy
+footprint has the diameter ``2·div·R``. (HELIOS++'s footprint-area formula reads it as a full
+angle, quirk 2 of the reference notes; that area cancels from the received power.) A datasheet
+full angle θ is therefore given as ``div = θ/2``
+(:func:`vlsforest.sim.scanner.datasheet_divergence`). An elliptical beam has a major and a
+minor ``div`` and an orientation of the major axis relative to the scan direction; it scales
+the ring pattern along its two axes, so each sub-ray sits on the ellipse ``k/Q`` of the
+footprint and carries the same weight as on a circular beam.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ class SubrayPattern:
     quality : int
         Beam sample quality Q.
     divergence : tuple of float
-        Full 1/e² divergence (major, minor) in radians.
+        1/e² half angle (major, minor) in radians.
     """
 
     offsets: np.ndarray
@@ -86,8 +86,7 @@ def gaussian_weight(frac, ranges, range0: float = 0.0, m2: float = 1.0) -> np.nd
     return np.exp(-2.0 * (np.asarray(frac) * m2) ** 2 * r * r / (r * r + range0 * range0))
 
 
-def subray_pattern(quality: int, divergence_mrad, orientation_deg: float = 0.0,
-                   ring_scale: str = "helios") -> SubrayPattern:
+def subray_pattern(quality: int, divergence_mrad, orientation_deg: float = 0.0) -> SubrayPattern:
     """Build the sub-ray pattern of a pulse.
 
     Parameters
@@ -95,11 +94,10 @@ def subray_pattern(quality: int, divergence_mrad, orientation_deg: float = 0.0,
     quality : int
         Beam sample quality Q (number of rings).
     divergence_mrad : float or (float, float)
-        Full divergence at 1/e², one value (circular) or (major, minor).
+        The 1/e² half angle (HELIOS++'s ``beamDivergence``), one value (circular) or
+        (major, minor).
     orientation_deg : float
         Angle of the major axis from the scan direction, degrees.
-    ring_scale : {"helios", "physical"}
-        Where the rings sit (see the module docstring).
 
     Returns
     -------
@@ -112,10 +110,8 @@ def subray_pattern(quality: int, divergence_mrad, orientation_deg: float = 0.0,
         raise ConfigError(f"beam_divergence_mrad must be one or two positive numbers, got {divergence_mrad!r}")
     if div[1] > div[0]:
         raise ConfigError("beam_divergence_mrad: the minor divergence exceeds the major one")
-    if ring_scale not in ("helios", "physical"):
-        raise ConfigError(f"ring_scale must be 'helios' or 'physical', got {ring_scale!r}")
     counts = ring_counts(quality)
-    extent = div if ring_scale == "helios" else div / 2.0
+    extent = div
     fr, az = [], []
     for k, n in enumerate(counts):
         fr.append(np.full(n, k / quality))

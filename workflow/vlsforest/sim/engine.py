@@ -11,17 +11,16 @@ Detector options (the SURVEY.yaml ``detector:`` mapping)::
     detector:
       mode: physical          # or helios_v1: defaults of the switches below
       peak_rule: physical     # physical | helios            (quirk 3, isolated echoes)
-      ring_scale: helios      # helios | physical            (quirk 2, outer ring placement)
       two_way_time: false     # one-way time axis as HELIOS++ (quirk 1)
       dedupe_ranges: false    # drop bit-identical sub-ray ranges (quirk 5)
       atmosphere_convention: physical   # physical | helios  (quirk 12)
       return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
 
-``mode: helios_v1`` sets ``peak_rule: helios, ring_scale: helios, dedupe_ranges: true,
-atmosphere_convention: helios``; ``mode: physical`` (default) sets ``peak_rule: physical,
-ring_scale: helios, dedupe_ranges: false, atmosphere_convention: physical``. The ring scale
-stays at the HELIOS++ placement in both modes because the study's tuned window sizes were
-found with it; ``ring_scale: physical`` is the switch for the nominal beam extent.
+``mode: helios_v1`` sets ``peak_rule: helios, dedupe_ranges: true, atmosphere_convention:
+helios``; ``mode: physical`` (default) sets ``peak_rule: physical, dedupe_ranges: false,
+atmosphere_convention: physical``. The sub-ray rings sit where HELIOS++ puts them in both
+modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² half angle, see
+:mod:`vlsforest.sim.scanner`), so a real sensor's beam is given there, not by a detector switch.
 """
 
 from __future__ import annotations
@@ -41,17 +40,16 @@ import numpy as np
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.sim.beam import cone_meets_box, subray_directions, subray_pattern, subray_rays32
 from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
-                                    detection_constants, energy_constants, hit_energy)
+                                    detection_constants, energy_constants, hit_energy, las_intensity)
 
 _MODES = {
-    "physical": dict(peak_rule="physical", ring_scale="helios", two_way_time=False, dedupe_ranges=False,
+    "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
                      atmosphere_convention="physical", return_position="axis"),
-    "helios_v1": dict(peak_rule="helios", ring_scale="helios", two_way_time=False, dedupe_ranges=True,
+    "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=True,
                       atmosphere_convention="helios", return_position="axis"),
 }
 _CHOICES = {
     "peak_rule": ("physical", "helios"),
-    "ring_scale": ("helios", "physical"),
     "atmosphere_convention": ("physical", "helios"),
     "return_position": ("axis", "weighted"),
 }
@@ -62,7 +60,6 @@ class DetectorOptions:
     """Resolved detector switches (see the module docstring)."""
 
     peak_rule: str = "physical"
-    ring_scale: str = "helios"
     two_way_time: bool = False
     dedupe_ranges: bool = False
     atmosphere_convention: str = "physical"
@@ -142,8 +139,7 @@ class _Job:
         self.block_slots = int(block_slots)
         sc = survey.scanner
         self.opts = DetectorOptions.from_dict(survey.detector)
-        self.pattern = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad, sc.beam_orientation_deg,
-                                      ring_scale=self.opts.ring_scale)
+        self.pattern = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad, sc.beam_orientation_deg)
         self.atm_alpha = (atmospheric_alpha(sc.wavelength_nm, sc.visibility_km, self.opts.atmosphere_convention)
                           if sc.atmosphere else 0.0)
         mats = [p.material for p in scene.parts]
@@ -449,7 +445,7 @@ def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, 
     else:
         xyz = weighted(ranges)
     points = dict(xyz=xyz, amplitude=amp.astype(np.float32),
-                  intensity=np.clip(np.round(amp), 0, 65535).astype(np.uint16),
+                  intensity=las_intensity(amp),
                   return_number=np.minimum(ret_num, 15).astype(np.uint8),
                   number_of_returns=np.minimum(n_of_ret, 15).astype(np.uint8),
                   gps_time=batch.gps_time[p], scan_angle=batch.scan_angle_deg[p],

@@ -1,7 +1,7 @@
 """Writing simulation results: LAS/LAZ points, the per-pulse table and the sub-ray hits.
 
 - Points: LAS 1.4 point format 6 with the standard fields (xyz, intensity = the peak
-  amplitude rounded and clipped to 0–65535, return number, number of returns (both capped at
+  amplitude scaled as HELIOS++ does, :func:`vlsforest.sim.waveform.las_intensity`, return number, number of returns (both capped at
   15, the LAS 1.4 limit), GPS time, scan angle, point source id = flight line / scan position,
   classification) plus extra dimensions ``object_id`` (int32) and ``amplitude`` (float32).
 - Pulses (``.npz`` or ``.csv``): one row per emitted pulse, zero-return pulses included:

@@ -8,8 +8,8 @@ into a SURVEY mapping with legs that cover the plot.
   ``line_spacing_m`` apart, covering the plot plus ``margin_m``.
 - ``pattern: trajectory``: emulate a recorded flight (the study's scenarios "emulate the real
   trajectories"): one straight active leg per flight line of a trajectory CSV (``gps_time, x, y,
-  z, …, source_id``) from its first to its last sample, inactive legs between lines, speed = the
-  median line speed (:func:`survey_from_trajectory`).
+  z, …, source_id``) from its first to its last sample, inactive legs between lines, each line
+  flown at its own recorded speed (:func:`survey_from_trajectory`).
 
 Lines are placed over the plot widened by ``cross_margin_m`` across track (default 0): a wide
 scanner (±90°) also samples the plot from lines far beside it, which a real campaign over a
@@ -27,7 +27,7 @@ import numpy as np
 from vlsforest.errors import ConfigError
 
 _KEYS = {"scanner", "overrides", "detector", "pattern", "altitude_m", "speed_mps", "line_spacing_m",
-         "margin_m", "cross_margin_m", "n_lines", "seed", "trajectory_noise",
+         "margin_m", "cross_margin_m", "n_lines", "line_offset_m", "seed", "trajectory_noise",
          "recording", "extraction_radius_m"}  # the last two are for the workflow, not the flight
 
 
@@ -50,8 +50,9 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
     scenario : dict
         ``scanner`` (preset), ``pattern`` (``parallel`` | ``double_grid``), ``altitude_m``,
         ``speed_mps``, ``line_spacing_m``; optional ``overrides``, ``detector``,
-        ``margin_m`` (default 20), ``n_lines`` (default: enough to cover), ``seed``,
-        ``trajectory_noise``.
+        ``margin_m`` (default 20), ``n_lines`` (default: enough to cover), ``line_offset_m``
+        (default 0: the lines sit symmetrically about the plot's centre; otherwise the whole
+        pattern is shifted across track by this), ``seed``, ``trajectory_noise``.
     extent : (xmin, ymin, xmax, ymax)
         Plot extent to cover.
     ground_z : float
@@ -73,6 +74,9 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
         v = scenario.get(key, 0.0)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
             raise ConfigError(f"{where}.{key} must be a number ≥ 0, got {v!r}")
+    shift = scenario.get("line_offset_m", 0.0)
+    if isinstance(shift, bool) or not isinstance(shift, (int, float)) or not math.isfinite(shift):
+        raise ConfigError(f"{where}.line_offset_m must be a number, got {shift!r}")
     for key in ("altitude_m", "speed_mps", "line_spacing_m"):
         v = scenario[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
@@ -89,14 +93,14 @@ def plan_survey(scenario: dict, extent, ground_z: float, where: str = "scenario"
         raise ConfigError(f"{where}.pattern 'trajectory' needs a trajectory file (vlsforest plan --trajectory)")
     if pattern not in ("parallel", "double_grid"):
         raise ConfigError(f"{where}.pattern must be 'parallel', 'double_grid' or 'trajectory', got {pattern!r}")
-    xs = _lines(xmin - cross, xmax + cross, spacing, n_lines)
+    xs = _lines(xmin - cross, xmax + cross, spacing, n_lines) + float(shift)
     for i, x in enumerate(xs):  # lines along y, alternating direction
         y0, y1 = (ymin - margin, ymax + margin) if i % 2 == 0 else (ymax + margin, ymin - margin)
         if legs:
             legs.append({"start": legs[-1]["end"], "end": [float(x), y0, z], "active": False})
         legs.append({"start": [float(x), y0, z], "end": [float(x), y1, z], "active": True})
     if pattern == "double_grid":
-        ys = _lines(ymin - cross, ymax + cross, spacing, n_lines)
+        ys = _lines(ymin - cross, ymax + cross, spacing, n_lines) + float(shift)
         for i, y in enumerate(ys):  # lines along x
             x0, x1 = (xmin - margin, xmax + margin) if i % 2 == 0 else (xmax + margin, xmin - margin)
             legs.append({"start": legs[-1]["end"], "end": [x0, float(y), z], "active": False})
@@ -149,16 +153,17 @@ def survey_from_trajectory(scenario: dict, trajectory, where: str = "scenario", 
         dist = float(np.linalg.norm(a[-1, 1:] - a[0, 1:]))
         if dist <= 0:
             continue
-        speeds.append(dist / (a[-1, 0] - a[0, 0]))
+        speeds.append(float(dist / (a[-1, 0] - a[0, 0])))
         if legs:
             legs.append({"start": legs[-1]["end"], "end": start, "active": False})
-        legs.append({"start": start, "end": end, "active": True})
+        legs.append({"start": start, "end": end, "active": True, "speed_mps": speeds[-1]})
     if not legs:
         from vlsforest.errors import InputDataError
 
         raise InputDataError(f"{source}: no flight line with two distinct samples")
     survey = {"scanner": scenario["scanner"],
               "platform": {"type": "linear", "speed_mps": float(np.median(speeds)), "legs": legs}}
+    # the platform speed (the median line speed) is used by the transit legs between lines only
     for key in ("overrides", "detector", "trajectory_noise", "seed"):
         if key in scenario:
             survey[key] = scenario[key]

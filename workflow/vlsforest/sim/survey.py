@@ -5,11 +5,11 @@ platform. :func:`load_survey` reads SURVEY.yaml::
 
     scanner: riegl_vq780i              # preset name, or a mapping of ScannerSettings fields
                                        # (custom scanner, see scanner_from_dict)
-    overrides: {prf_hz: 1.0e6, beam_divergence_mrad: [1.6, 0.5], ...}   # optional
+    overrides: {prf_hz: 1.0e6, beam_divergence_fwhm_mrad: [1.6, 0.5], ...}   # optional
     platform:
       type: linear                     # default; or static (TLS)
-      speed_mps: 51
-      legs: [{start: [x, y, z], end: [x, y, z], active: true}, ...]
+      speed_mps: 51                    # default speed of the legs
+      legs: [{start: [x, y, z], end: [x, y, z], active: true, speed_mps: 51}, ...]  # speed optional
     # platform: {type: static, positions: [{position: [x, y, z], heading_deg: 0, tilt_deg: 0}]}
     trajectory_noise: {position_sigma_m: 0.0, attitude_sigma_deg: 0.0, correlation_s: 1.0}
     seed: 0
@@ -23,9 +23,9 @@ z up. Heading is the compass azimuth of the forward axis, clockwise from +y (nor
 positive right wing down, pitch positive nose up; body → world is ``H(heading)·P(pitch)·R(roll)``.
 
 *Linear platform.* GPS time is 0 at the start of the first leg. The platform flies the legs in
-order at ``speed_mps``, inactive legs included (time passes, no slots); when a leg does not start
-where the previous one ended, the straight transit between them also takes time
-(distance / speed) without slots. Slot k of an active leg fires at ``t_leg + k/PRF`` from
+order, each at its own ``speed_mps`` (default: the platform's), inactive legs included (time
+passes, no slots); when a leg does not start where the previous one ended, the straight transit
+to it also takes time (distance / the leg's speed) without slots. Slot k of an active leg fires at ``t_leg + k/PRF`` from
 ``start + (k/PRF)·speed·u`` (u = the leg's unit vector) for every ``k/PRF`` < leg duration, so a
 slot every 1/PRF tick and the platform advances ``speed/PRF`` per slot. Heading = the azimuth of
 the leg's horizontal direction (a vertical leg keeps the previous heading, 0 for the first);
@@ -76,6 +76,7 @@ from vlsforest.sim.scanner import (
     ScannerSettings,
     apply_overrides,
     deflect,
+    emission_half_angle_deg,
     scanner_from_dict,
     scanner_from_preset,
     tls_grid,
@@ -194,6 +195,7 @@ class Leg:
     source_id: int  # 0 for inactive legs
     slot_offset: int
     n_slots: int
+    speed_mps: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,7 +356,7 @@ class Survey:
         self._src = np.array([s.source_id for s in segs], dtype=np.uint16)
         if platform_type == "linear":
             self._p0 = np.array([s.start for s in segs], dtype=np.float64)
-            self._vel = np.array([(s.end - s.start) / np.linalg.norm(s.end - s.start) * speed_mps for s in segs])
+            self._vel = np.array([(s.end - s.start) / np.linalg.norm(s.end - s.start) * s.speed_mps for s in segs])
             self._tilt = np.zeros(len(segs))
         else:
             self._p0 = np.array([s.position for s in segs], dtype=np.float64)
@@ -474,10 +476,10 @@ class Survey:
             return batch.slot, live, batch.subset(live)
         if kind == 0:
             a, b = -s.max_scan_angle_deg, 2.0 * s.max_scan_angle_deg
-            window = s.scan_angle_deg * (1 + 1e-12)
+            window = emission_half_angle_deg(s) * (1 + 1e-12)
         elif kind == 1:
             a, b = -180.0, 360.0
-            window = min(s.max_scan_angle_deg, s.scan_angle_deg) * (1 + 1e-12)
+            window = emission_half_angle_deg(s) * (1 + 1e-12)
         elif kind == 2:
             a, b = s.scan_angle_deg, 2.0 * s.scan_angle_deg
             window = np.inf
@@ -552,8 +554,7 @@ class Survey:
         """Across-track swath width on flat ground at height ``ground_z``, per active leg.
 
         Uses the mean platform height of each leg: ``2·h·tan(θ)`` with θ the emitted half
-        angle (polygon/oscillating: ``scan_angle_deg``; rotating: the smaller of scan angle and
-        window, ``inf`` from 90° on; conic: the cone half angle).
+        angle (:func:`~vlsforest.sim.scanner.emission_half_angle_deg`; ``inf`` from 90° on).
 
         Returns
         -------
@@ -561,10 +562,7 @@ class Survey:
         """
         if self.platform_type != "linear":
             raise ValueError("swath_width is defined for linear (airborne) platforms only")
-        s = self.scanner
-        theta = s.scan_angle_deg
-        if s.deflector == "rotating":
-            theta = min(theta, s.max_scan_angle_deg)
+        theta = emission_half_angle_deg(self.scanner)
         out = []
         for lg in self._segs:
             h = 0.5 * (lg.start[2] + lg.end[2]) - ground_z
@@ -916,7 +914,7 @@ def _parse_linear(p: dict, prf: float):
     source = 0
     for i, entry in enumerate(raw):
         key = f"platform.legs[{i}]"
-        _mapping(entry, key, ("start", "end", "active"))
+        _mapping(entry, key, ("start", "end", "active", "speed_mps"))
         for req in ("start", "end"):
             if req not in entry:
                 raise ConfigError(f"{key}.{req} is missing")
@@ -925,17 +923,18 @@ def _parse_linear(p: dict, prf: float):
         active = entry.get("active", True)
         if not isinstance(active, bool):
             raise ConfigError(f"{key}.active must be true or false (got {active!r})")
+        leg_speed = _real(entry["speed_mps"], f"{key}.speed_mps", positive=True) if "speed_mps" in entry else speed
         length = float(np.linalg.norm(b - a))
         if not length > 0:
             raise ConfigError(f"{key} has zero length (start == end)")
         if prev_end is not None:
-            t += float(np.linalg.norm(a - prev_end)) / speed
+            t += float(np.linalg.norm(a - prev_end)) / leg_speed
         heading = _heading_of(b - a, heading)
-        duration = length / speed
+        duration = length / leg_speed
         n = int(math.ceil(duration * prf - 1e-9)) if active else 0
         if active:
             source += 1
-        legs.append(Leg(a, b, active, t, duration, heading, source if active else 0, offset, n))
+        legs.append(Leg(a, b, active, t, duration, heading, source if active else 0, offset, n, leg_speed))
         offset += n
         t += duration
         prev_end = b

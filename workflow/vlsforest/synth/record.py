@@ -1,28 +1,32 @@
 """Recordings of the virtual forest: multi-scan TLS, and "real" ALS and ULS with fuller physics.
 
 What a field campaign would deliver, made by scanning the leaf-level truth geometry with our
-own simulator. The recording physics (:data:`DEFAULT_RECORDING_PHYSICS`, replaceable with
-``--recording-physics FILE``) is richer than the study's simulations: the miniVUX's elliptical
-1.6 × 0.5 mrad beam (given at 50 % peak intensity, converted to the 1/e² convention), 37
-sub-rays, an energy threshold, range noise and small trajectory noise. Its keys are the
+own simulator. The recordings record the sensors as they are: the datasheet beams
+(:data:`~vlsforest.sim.scanner.REAL_BEAMS`: the VQ-780i's 0.25 mrad and the miniVUX's elliptical
+1.6 × 0.5 mrad at 50 % peak intensity), the presets' datasheet ranging accuracy and a physical
+detector (``detector: {mode: physical}``), plus the recording physics
+(:data:`DEFAULT_RECORDING_PHYSICS`, replaceable with ``--recording-physics FILE``): 37 sub-rays,
+an energy threshold, at most 5–7 returns and small trajectory noise. Its keys are the
 physics-candidate ids of the diagnosis stage, per sensor::
 
     als:
       beam_sample_quality: 4                 # 37 sub-rays
+      elliptical_footprint: {major_mrad: 0.25, minor_mrad: 0.25, convention: 1/e2}
       detection_threshold: {min_energy: 60}  # peak amplitude units of the energy model
-      range_noise: {sigma_m: 0.02}
-      trajectory_noise: {position_sigma_m: 0.03, attitude_sigma_deg: 0.003, correlation_s: 2.0}
+      trajectory_noise: {position_sigma_m: 0.05, attitude_sigma_deg: 0.006, correlation_s: 2.0}
       max_returns: {n: 7}
     uls:
       elliptical_footprint: {major_mrad: 1.6, minor_mrad: 0.5, convention: fwhm, orientation_deg: 0}
       …
-    tls:
-      range_noise: {sigma_m: 0.005}
+    tls: {}
 
-Every key is optional; a missing key leaves the scanner preset's value (the study's
-simulation setting). Unknown keys are an error. Further candidates (``beam_divergence``
-``{scale}``, ``waveform_window`` ``{window_ns}``, ``incidence_reflectance``
-``{specularity, shininess}``, ``reflectance`` ``{foliage, wood, ground}``) are accepted too.
+``elliptical_footprint`` gives the beam as datasheet full angles, at 50 % peak intensity
+(``convention: fwhm``, the default) or at 1/e² (``convention: 1/e2``). Every key is optional;
+a missing key leaves the scanner preset's value (the study's simulation setting). Unknown keys
+are an error. Further candidates (``beam_divergence`` ``{scale}``, ``range_noise``
+``{sigma_m}``, ``waveform_window`` ``{window_ns}``, ``peak_rule`` ``{physical}`` (0: the
+HELIOS++ 1.0.8 rule), ``incidence_reflectance`` ``{specularity, shininess}``, ``reflectance``
+``{foliage, wood, ground}``) are accepted too.
 
 Scene of a plot: the rough ground as a mesh (object id 1, class 2) and per tree two mesh parts,
 wood (object id ``10·tree_id + 1``) and foliage (``10·tree_id + 2``), both labelled per face
@@ -37,6 +41,7 @@ import json
 import multiprocessing
 import sys
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -50,7 +55,7 @@ from vlsforest.io.mesh import TriangleMesh, write_mesh
 from vlsforest.sim.engine import simulate
 from vlsforest.sim.output import save_npz
 from vlsforest.sim.planning import plan_survey
-from vlsforest.sim.scanner import fwhm_to_1e2
+from vlsforest.sim.scanner import PRESETS, REAL_BEAMS, datasheet_divergence
 from vlsforest.sim.scene import Material, Scene
 from vlsforest.sim.survey import survey_from_dict
 
@@ -60,6 +65,9 @@ WOOD, FOLIAGE = 1, 2
 DEFAULT_RECORDING_PHYSICS = {
     "als": {
         "beam_sample_quality": 4,
+        "elliptical_footprint": {"major_mrad": REAL_BEAMS["riegl_vq780i"]["full_1e2_mrad"][0],
+                                 "minor_mrad": REAL_BEAMS["riegl_vq780i"]["full_1e2_mrad"][1],
+                                 "convention": "1/e2", "orientation_deg": 0.0},
         # Detection thresholds (peak amplitude units of the energy model; a full-footprint hit on
         # foliage is ≈ 400 at the ALS's 700 m and ≈ 40 000 at the ULS's 70 m) calibrated on the
         # quick forest (all trees, truth labels) towards the multiple-return shares of the real
@@ -68,22 +76,20 @@ DEFAULT_RECORDING_PHYSICS = {
         # partial hits.  A ULS threshold of 15 000 would give 40 / 44 %, but the conifer–broadleaf
         # contrast then shrinks below the real 5 pp; matching both needs a 5 ns ULS window too.
         "detection_threshold": {"min_energy": 60.0},
-        "range_noise": {"sigma_m": 0.03},
         # GNSS/INS errors of a manned survey: ~5 cm position, 0.006° attitude (7 cm at 700 m)
         "trajectory_noise": {"position_sigma_m": 0.05, "attitude_sigma_deg": 0.006, "correlation_s": 2.0},
         "max_returns": {"n": 7},
     },
     "uls": {
         "beam_sample_quality": 4,
-        "elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5, "convention": "fwhm", "orientation_deg": 0.0},
+        "elliptical_footprint": {"major_mrad": REAL_BEAMS["riegl_minivux1uav"]["fwhm_mrad"][0],
+                                 "minor_mrad": REAL_BEAMS["riegl_minivux1uav"]["fwhm_mrad"][1],
+                                 "convention": "fwhm", "orientation_deg": 0.0},
         "detection_threshold": {"min_energy": 10000.0},
-        "range_noise": {"sigma_m": 0.015},
         "trajectory_noise": {"position_sigma_m": 0.03, "attitude_sigma_deg": 0.005, "correlation_s": 2.0},
         "max_returns": {"n": 5},
     },
-    "tls": {
-        "range_noise": {"sigma_m": 0.005},
-    },
+    "tls": {},
 }
 
 #: candidate id → allowed parameter names
@@ -98,6 +104,7 @@ _CANDIDATES = {
     "incidence_reflectance": {"specularity", "shininess"},
     "reflectance": {"foliage", "wood", "ground"},
     "max_returns": {"n"},
+    "peak_rule": {"physical"},
 }
 
 #: reflectance (fraction) at the scanner wavelengths: 1064 nm (ALS), 905 nm (ULS), 1550 nm (TLS)
@@ -127,10 +134,18 @@ DEFAULT_TLS = {
 
 #: ALS / ULS campaign settings of the study (Table 3); altitude above ground by plot
 DEFAULT_CAMPAIGN = {
+    # ALS: a block of parallel lines 175 m apart whose swaths (±30° at ≈ 700 m: ≈ 810 m) overlap
+    # by ≈ 76 %, as in the study; 7 lines hold every strip that reaches a plot, and the block is
+    # not centred on the plot but shifted by a seeded offset in [0, spacing) (random_line_offset),
+    # as a campaign planned over the whole area is. The mean over offsets is the campaign's
+    # density, PRF_eff / (speed · spacing).
     "als": {"scanner": "riegl_vq780i", "pattern": "parallel", "speed_mps": 51.0, "line_spacing_m": 175.0,
-            "n_lines": 3, "margin_m": 25.0, "overrides": {"scan_freq_hz": 225.0},
+            "n_lines": 7, "random_line_offset": True, "margin_m": 25.0, "overrides": {"scan_freq_hz": 225.0},
             "altitude_m": {"P1": 687, "P2": 725, "P3": 710, "P4": 710, "P5": 658, "P6": 658, "default": 700}},
-    "uls": {"scanner": "riegl_minivux1uav", "pattern": "double_grid", "speed_mps": 5.0, "line_spacing_m": 28.0,
+    # speed_mps: a number, or by plot a number or one per repeat (the first `repeats` are flown;
+    # P2's second grid flew at 4 m/s)
+    "uls": {"scanner": "riegl_minivux1uav", "pattern": "double_grid",
+            "speed_mps": {"P2": [5.0, 4.0], "default": 5.0}, "line_spacing_m": 28.0,
             "margin_m": 15.0, "cross_margin_m": 60.0, "repeats": 2, "overrides": {},
             "altitude_m": {"P1": 68, "P2": 64, "P3": 72, "P4": 72, "P5": 71, "P6": 71, "default": 70}},
 }
@@ -184,17 +199,22 @@ def load_recording_physics(path) -> dict:
 
 
 def physics_overrides(block: dict, base_divergence) -> tuple[dict, dict | None]:
-    """Scanner overrides and trajectory noise for one sensor's physics block."""
+    """Scanner overrides and trajectory noise for one sensor's physics block.
+
+    ``base_divergence`` is the preset's ``beam_divergence_mrad`` (the HELIOS++ 1/e² half angle),
+    which a ``beam_divergence`` scale multiplies when no ``elliptical_footprint`` sets the beam.
+    """
     ov: dict = {}
     if "beam_sample_quality" in block:
         ov["beam_sample_quality"] = int(block["beam_sample_quality"])
     div = np.asarray(base_divergence, dtype=float)
     if "elliptical_footprint" in block:
         e = block["elliptical_footprint"]
-        major, minor = float(e.get("major_mrad", div[0])), float(e.get("minor_mrad", div[1]))
-        if e.get("convention", "fwhm") == "fwhm":
-            major, minor = float(fwhm_to_1e2(major)), float(fwhm_to_1e2(minor))
-        div = np.array([major, minor])
+        if "major_mrad" not in e or "minor_mrad" not in e:
+            raise ConfigError("elliptical_footprint needs major_mrad and minor_mrad")
+        major, minor = float(e["major_mrad"]), float(e["minor_mrad"])
+        key = "fwhm_mrad" if e.get("convention", "fwhm") == "fwhm" else "full_1e2_mrad"
+        div = np.array(datasheet_divergence(**{key: (major, minor)}))
         ov["beam_orientation_deg"] = float(e.get("orientation_deg", 0.0))
     if "beam_divergence" in block:
         div = div * float(block["beam_divergence"].get("scale", 1.0))
@@ -370,10 +390,18 @@ def _tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
     ov = {"tls_h_fov_deg": [-half, half], "tls_v_fov_deg": list(cfg["v_fov_deg"]),
           "tls_h_step_deg": cfg["step_deg"], "tls_v_step_deg": cfg["step_deg"],
           "beam_sample_quality": int(cfg["beam_sample_quality"])}
-    pov, _ = physics_overrides(physics, (0.3, 0.3))
+    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam_divergence_mrad)
     ov.update(pov)
     return {"scanner": "riegl_vz400", "overrides": ov, "seed": seed,
-            "platform": {"type": "static", "positions": [pos]}, "detector": {"mode": "physical"}}
+            "platform": {"type": "static", "positions": [pos]}, "detector": _detector(physics)}
+
+
+def _detector(physics: dict) -> dict:
+    """The recordings' detector: physical, or HELIOS++ 1.0.8's peak rule where the physics asks."""
+    det = {"mode": "physical"}
+    if "peak_rule" in physics and not round(float(physics["peak_rule"].get("physical", 1))):
+        det["peak_rule"] = "helios"
+    return det
 
 
 # ---------------------------------------------------------------------------------- airborne
@@ -383,15 +411,21 @@ def airborne_survey(plot, sensor: str, campaign: dict, physics: dict, seed: int)
     alt = c.pop("altitude_m")
     alt = alt.get(plot.name, alt.get("default")) if isinstance(alt, dict) else alt
     repeats = int(c.pop("repeats", 1))
-    from vlsforest.sim.scanner import PRESETS
-
+    if c.pop("random_line_offset", False):
+        rng = np.random.default_rng([int(seed), zlib.crc32(f"{plot.name}/{sensor}".encode())])
+        c["line_offset_m"] = float(rng.uniform(0.0, float(c["line_spacing_m"])))
+    speed = c.pop("speed_mps")
+    speed = speed.get(plot.name, speed.get("default")) if isinstance(speed, dict) else speed
+    speeds = [float(v) for v in speed] if isinstance(speed, (list, tuple)) else [float(speed)] * repeats
+    if len(speeds) < repeats:
+        raise ConfigError(f"recordings.{sensor}.speed_mps: {len(speeds)} speed(s) for {repeats} repeats of {plot.name}")
     base_div = PRESETS[c["scanner"]].beam_divergence_mrad
     pov, traj = physics_overrides(physics, base_div)
     ov = dict(c.pop("overrides", {}) or {})
     ov.update(pov)
     c["overrides"] = ov
     c["altitude_m"] = float(alt)
-    c["detector"] = {"mode": "physical"}
+    c["detector"] = _detector(physics)
     if traj:
         c["trajectory_noise"] = traj
     surveys = []
@@ -400,7 +434,7 @@ def airborne_survey(plot, sensor: str, campaign: dict, physics: dict, seed: int)
         if r % 2 == 1:  # a second grid shifted by half a line spacing
             s = c["line_spacing_m"] / 2.0
             ext = [ext[0] + s, ext[1] + s, ext[2] + s, ext[3] + s]
-        d = plan_survey(c, ext, plot.ground_z(), where=f"recordings.{sensor}")
+        d = plan_survey(dict(c, speed_mps=speeds[r]), ext, plot.ground_z(), where=f"recordings.{sensor}")
         d["seed"] = int(seed) + 7919 * r
         surveys.append(d)
     return surveys
@@ -456,7 +490,8 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
                          "h_fov_start_deg": s.tls_h_fov_deg[0], "h_fov_end_deg": s.tls_h_fov_deg[1],
                          "v_fov_min_deg": s.tls_v_fov_deg[0], "v_fov_max_deg": s.tls_v_fov_deg[1],
                          "h_step_deg": s.tls_h_step_deg, "v_step_deg": s.tls_v_step_deg, "prf_hz": s.prf_hz,
-                         "beam_divergence_mrad": s.beam_divergence_mrad[0], "gps_time_start": gps,
+                         "beam_divergence_full_1e2_mrad": 2.0 * s.beam_divergence_mrad[0],
+                         "beam_exit_diameter_m": s.beam_exit_diameter_m, "gps_time_start": gps,
                          "n_shots": survey.n_slots, "n_points": len(res.points["xyz"])})
             gps += survey.n_slots / s.prf_hz + 1.0
             _log(f"{plot.name} TLS scan {k}: {survey.n_slots} shots, {len(res.points['xyz'])} points "

@@ -1,0 +1,44 @@
+"""The study's configurations simulate the study as HELIOS++ 1.0.8 ran it."""
+
+from pathlib import Path
+
+import jsonschema
+import pytest
+import yaml
+
+from vlsforest.sim.engine import DetectorOptions
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name):
+    return yaml.safe_load((ROOT / "config" / name).read_text())
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "quick.yaml"])
+def test_study_scenarios_run_the_helios_v1_detector(name):
+    scenarios = _load(name)["scenarios"]
+    assert {"als", "uls"} <= set(scenarios)
+    for key in ("als", "uls"):
+        det = DetectorOptions.from_dict(scenarios[key].get("detector"))
+        assert scenarios[key]["detector"] == {"mode": "helios_v1"}
+        assert det.peak_rule == "helios" and det.dedupe_ranges and det.atmosphere_convention == "helios"
+    # the study's tuned windows (1.75 ns ALS, 1.5 ns ULS) stay with that rule
+    assert scenarios["als"]["overrides"]["window_size_ns"] == 1.75
+    assert scenarios["uls"]["overrides"]["window_size_ns"] == 1.5
+
+
+def test_physical_detector_sensitivity_scenarios_validate_beside_the_study():
+    extra = _load("physical-detector.yaml")["scenarios"]
+    schema = yaml.safe_load((ROOT / "config" / "schema.yaml").read_text())
+    for base in ("config.yaml", "quick.yaml"):
+        cfg = _load(base)
+        study = cfg["scenarios"]
+        cfg["scenarios"] = {**study, **extra}
+        jsonschema.validate(cfg, schema)
+        for name, sc in extra.items():
+            twin = study[name.removesuffix("_physical")]
+            assert sc["detector"] == {"mode": "physical"}
+            # the same survey as its study twin, the detector aside
+            assert {k: v for k, v in sc.items() if k != "detector"} == \
+                {k: v for k, v in twin.items() if k != "detector"}
