@@ -10,6 +10,7 @@ Each hit is reported as ``file:line: text``.
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,6 +51,19 @@ _HASH_CONTEXT = re.compile(
 
 
 def _files():
+    """The scanned files: those git tracks or would track (build outputs such as the generated
+    reference pages are git-ignored and left out); every file when git is not available."""
+    try:
+        out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard",
+                              "--", *SCANNED], cwd=ROOT, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        out = None
+    if out is not None:
+        for rel in sorted(set(out.decode().split("\0")) - {""}):
+            p = ROOT / rel
+            if p.is_file() and p.suffix in SUFFIXES:
+                yield p
+        return
     for name in SCANNED:
         path = ROOT / name
         if path.is_file():
