@@ -3,13 +3,18 @@
 # envs/docs-requirements.txt into .venv (once; again only when the pins change), generate the
 # reference pages (command line, configuration, benchmark results) into docs/reference/, and run
 # `mkdocs build --strict`, which fails on any warning, broken link or broken anchor.
-# Run scripts/bootstrap.sh first (scripts/run-tests.sh does); extra arguments go to mkdocs build.
+# Sets up .venv first (scripts/bootstrap.sh, a no-op when current); VLSFOREST_DOCS_PYTHON=PATH uses
+# another environment's Python instead (it needs vlsforest's requirements). Extra arguments go to
+# mkdocs build; VLSFOREST_SITE_DIR=DIR writes the site elsewhere.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
+if [ -z "${VLSFOREST_DOCS_PYTHON:-}" ]; then
+  bash "$ROOT/scripts/bootstrap.sh"
+fi
 PY="${VLSFOREST_DOCS_PYTHON:-.venv/bin/python}"
 if [ ! -x "$PY" ]; then
-  echo "build-docs: $PY not found; run 'bash scripts/bootstrap.sh' first" >&2; exit 1
+  echo "build-docs: $PY not found" >&2; exit 1
 fi
 MARK="$(dirname "$PY")/../.vlsforest-docs-req"
 DOCS_HASH=$(sha256sum envs/docs-requirements.txt | cut -d' ' -f1)
