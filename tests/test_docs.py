@@ -57,6 +57,14 @@ def test_readme_keeps_the_two_setup_commands():
         assert (ROOT / "scripts" / script).is_file()
 
 
+def test_readme_links_point_to_existing_files():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    local = [link for link in links if "://" not in link]
+    assert local
+    assert not [link for link in local if not (ROOT / link).exists()]
+
+
 # --------------------------------------------------------------------------- generated references
 
 
