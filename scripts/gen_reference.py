@@ -103,6 +103,12 @@ def cli_reference(parser: argparse.ArgumentParser | None = None) -> str:
             anchor = full.replace(" ", "-")
             out.append(f"| [`{full}`](#{anchor}) | {_cell(helps[full])} |")
     out.append("")
+    top = [a for a in _options(parser)]
+    if top:
+        out += ["## Global options", "", "```text", parser.format_usage().replace("usage: ", "").strip(),
+                "```", "", "| argument | description |", "|---|---|"]
+        out += [f"| {', '.join(f'`{o}`' for o in a.option_strings)} | {_cell(a.help)} |" for a in top]
+        out.append("")
     for full, sub in commands:
         depth = full.count(" ")
         anchor = full.replace(" ", "-")
@@ -184,6 +190,53 @@ def _rows(node: dict, path: str, when: str = ""):
         yield from _rows(branch, path, cond)
 
 
+def _numpy_params(doc: str) -> dict[str, str]:
+    """``{name: description}`` of the Parameters section of a NumPy-style docstring."""
+    out, names, lines = {}, [], []
+    section = False
+    for raw in (doc or "").splitlines():
+        line = raw.strip()
+        if line in ("Parameters", "Attributes"):
+            section = True
+            continue
+        if not section or set(line) == {"-"}:
+            continue
+        if line in ("Returns", "Raises", "Notes", "Examples", "See Also"):
+            break
+        indent = len(raw) - len(raw.lstrip())
+        if line and " : " in line and indent <= 4:
+            for n in names:
+                out[n] = " ".join(lines)
+            names = [n.strip() for n in line.split(" : ")[0].split(",")]
+            lines = []
+        elif line:
+            lines.append(line)
+    for n in names:
+        out[n] = " ".join(lines)
+    return out
+
+
+def library_defaults() -> dict[str, tuple[object, str]]:
+    """``{key path: (default, description)}`` that the library holds for keys the schema leaves
+    without a default or description (the TLS campaign and the segmentation settings)."""
+    sys.path.insert(0, str(ROOT / "workflow"))
+    out = {}
+    try:
+        import dataclasses
+
+        from vlsforest.segment import SegmentConfig
+        from vlsforest.synth.record import DEFAULT_TLS
+    except ImportError:  # pragma: no cover - the library is not importable here
+        return out
+    for key, value in DEFAULT_TLS.items():
+        out[f"tls.{key}"] = (value, "")
+    docs = _numpy_params(SegmentConfig.__doc__)
+    for f in dataclasses.fields(SegmentConfig):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        out[f"segment.{f.name}"] = (default, docs.get(f.name, ""))
+    return out
+
+
 def _load_schema(schema=None) -> dict:
     if schema is None:
         schema = ROOT / "config" / "schema.yaml"
@@ -204,13 +257,17 @@ def schema_keys(schema=None) -> set[str]:
 def config_reference(schema=None) -> str:
     """The configuration reference as Markdown."""
     schema = _load_schema(schema)
+    lib = library_defaults()
     out = [GENERATED_NOTE.format(source="config/schema.yaml"),
            "# Configuration reference", "",
            "The workflow's configuration (`config/config.yaml`, `config/quick.yaml`, or your own "
            "file given with `--configfile`) is checked against `config/schema.yaml` before any job "
            "runs; a bad value stops the run with `Invalid configuration at '<key>': …`.", "",
            f"Required at the top level: {', '.join(f'`{k}`' for k in schema.get('required', []))}. "
-           "`<name>` stands for a name you choose (a plot, method or scenario name, a species group).",
+           "`<name>` stands for a name you choose (a plot, method or scenario name, a species group). "
+           "Defaults marked *(library default)* are not in the schema but in the library "
+           "(`vlsforest.synth.record.DEFAULT_TLS`, `vlsforest.segment.SegmentConfig`), which "
+           "also supplies those keys' descriptions.",
            ""]
     top = schema.get("properties", {})
     for key, node in top.items():
@@ -225,6 +282,12 @@ def config_reference(schema=None) -> str:
         if rows:
             out += ["| key | type | default | description |", "|---|---|---|---|"]
             for path, typ, default, desc, when in rows:
+                if path in lib:
+                    lib_default, lib_desc = lib[path]
+                    desc = desc or lib_desc
+                    if default is None and lib_default is not None:
+                        default = lib_default
+                        desc = f"{desc} *(library default)*".strip()
                 d = " ".join(str(desc).split())
                 if when:
                     d = f"({when}) {d}".strip()
