@@ -20,7 +20,9 @@ MARK="$(dirname "$PY")/../.vlsforest-docs-req"
 DOCS_HASH=$(sha256sum envs/docs-requirements.txt | cut -d' ' -f1)
 if [ "$(cat "$MARK" 2>/dev/null)" != "$DOCS_HASH" ]; then
   echo "build-docs: installing the pinned documentation packages into $(dirname "$(dirname "$PY")")" >&2
-  "$PY" -m pip install -q --disable-pip-version-check -r envs/docs-requirements.txt
+  "$PY" -m pip install -q --disable-pip-version-check -r envs/docs-requirements.txt || {
+    echo "build-docs: error: cannot install envs/docs-requirements.txt (is the package index reachable?)" >&2
+    exit 1; }
   echo "$DOCS_HASH" > "$MARK"
 fi
 PYTHONPATH="$ROOT/workflow${PYTHONPATH:+:$PYTHONPATH}" "$PY" scripts/gen_reference.py docs/reference >/dev/null
