@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# One command: set up everything and run the test suite (slow end-to-end tests excluded unless
+# One command: set up everything, build the documentation (scripts/build-docs.sh: fails on any
+# warning or broken link) and run the test suite (slow end-to-end tests excluded unless
 # VLSFOREST_SLOW=1). Extra arguments go to pytest.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/bootstrap.sh"
 bash "$ROOT/scripts/test-deps.sh"
+bash "$ROOT/scripts/build-docs.sh" >/dev/null || { echo "run-tests: the documentation does not build" >&2; exit 1; }
 cd "$ROOT"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()

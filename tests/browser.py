@@ -19,6 +19,9 @@ import signal
 import time
 from pathlib import Path
 
+#: the DevTools protocol's field that routes a command to an attached target
+PAGE_KEY = "sessionId"
+
 CHROMIUM_PACKAGE = "chromium"  # Debian package name (scripts/test-deps.sh installs it)
 
 # The network is closed on these machines: without these flags Chromium blocks on connections.
@@ -68,7 +71,7 @@ class Chromium:
         self._stderr = open(self.stderr_path, "wb")
         try:
             # The browser's ends of the pipes go on its fds 3 and 4; every other descriptor of
-            # this process is close-on-exec. Its own session, so that close() can kill the group.
+            # this process is close-on-exec. setsid: a process group of its own, which close() kills whole.
             self.pid = os.posix_spawn(exe, args, dict(os.environ), setsid=True, file_actions=[
                 (os.POSIX_SPAWN_OPEN, 0, os.devnull, os.O_RDONLY, 0),
                 (os.POSIX_SPAWN_DUP2, self._stderr.fileno(), 1),
@@ -80,12 +83,12 @@ class Chromium:
             os.close(to_browser_r)
             os.close(from_browser_w)
         self.returncode = None
-        self.session = None
+        self.page = None
         try:
             targets = self.send("Target.getTargets")["targetInfos"]
             page = next(t for t in targets if t["type"] == "page")
-            self.session = self.send("Target.attachToTarget",
-                                     {"targetId": page["targetId"], "flatten": True})["sessionId"]
+            attached = self.send("Target.attachToTarget", {"targetId": page["targetId"], "flatten": True})
+            self.page = attached[PAGE_KEY]
             # A viewport of exactly width × height CSS pixels (the window has browser chrome).
             self.send("Emulation.setDeviceMetricsOverride", {
                 "width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
@@ -110,12 +113,12 @@ class Chromium:
         raw, self._buf = self._buf.split(b"\0", 1)
         return json.loads(raw)
 
-    def send(self, method, params=None, *, timeout=None, session=True):
-        """Send one command (to the attached page unless ``session=False``); return its result."""
+    def send(self, method, params=None, *, timeout=None, to_page=True):
+        """Send one command (to the attached page unless ``to_page=False``); return its result."""
         self._next_id += 1
         msg = {"id": self._next_id, "method": method, "params": params or {}}
-        if session and self.session is not None:
-            msg["sessionId"] = self.session
+        if to_page and self.page is not None:
+            msg[PAGE_KEY] = self.page
         data = json.dumps(msg).encode() + b"\0"
         while data:
             data = data[os.write(self._to_browser, data):]
@@ -209,7 +212,7 @@ class Chromium:
         try:
             if self.poll() is None:
                 try:  # a clean exit lets the browser reap its own helper processes
-                    self.send("Browser.close", session=False, timeout=5)
+                    self.send("Browser.close", to_page=False, timeout=5)
                 except Exception:
                     pass
                 deadline = time.monotonic() + 5

@@ -1,4 +1,4 @@
-"""The Snakemake HTML report opens in a real browser and every figure in it loads (issue 6).
+"""The Snakemake HTML report opens in a real browser and every figure in it loads.
 
 ``snakemake --report`` writes one self-contained HTML file: a React single-page app whose results
 (``var results``: path → {data_uri, ...}; ``var categories``: category → subcategory → paths) are

@@ -339,8 +339,7 @@ def test_quick_forest_against_truth(quick_forest, tmp_path, capsys):
     assert np.median(np.abs(dbh_err)) <= 0.02
     z_err = [trees["z"][f] - truth["z_ground"][t] for f, t in all_pairs]
     assert np.median(np.abs(z_err)) <= 0.05
-    # per-tree point IoU of the targets (session 14: 0.83–0.95, mean 0.892; before the scanner head
-    # clearance 0.913, and 0.907 without the stem bridges)
+    # per-tree point IoU of the targets (typically 0.83–0.95 on the quick forest)
     ious = []
     for f, t in pairs:
         T = lab == targets["tree_id"][t]

@@ -1,6 +1,6 @@
 """An embedded, seeded demo scene: one spruce-like tree (voxel crown + stem mesh) on a ground plane.
 
-Used as the workflow's default target until the virtual Bretten forest is available, and by
+A small self-contained scene for trying the simulator (``vlsforest demo``), and a fixture of
 tests and benchmarks. Everything is generated from the seed; nothing is read from disk.
 """
 

@@ -179,7 +179,7 @@ def _read_obj(path, raw: bytes):
     if not raw.endswith(b"\n"):
         raw = raw + b"\n"
     b = np.frombuffer(raw, dtype=np.uint8)
-    line_end = np.flatnonzero(b == 10)  # every line ends with '\n' now
+    line_end = np.flatnonzero(b == 10)  # every line ends with '\n' (added above)
     line_start = np.concatenate([[0], line_end[:-1] + 1])
     c0 = b[line_start]
     c1 = b[np.minimum(line_start + 1, len(b) - 1)]
