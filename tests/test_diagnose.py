@@ -620,16 +620,19 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
 
     workdir, _, _ = quick_run
     res = workdir / "results" / "Q1"
+    # the survey without range noise (its draws would follow the pulses a block holds)
+    survey = yaml.safe_load((res / "surveys" / "uls.yaml").read_text())
+    survey["overrides"] = dict(survey.get("overrides") or {}, range_noise_m=0.0)
+    quiet = tmp_path / "uls.yaml"
+    quiet.write_text(yaml.safe_dump(survey))
     sims = {}
     for margin in (0.0, 15.0):
         p = core.PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
-                           res / "scaled" / "scene" / "scene.yaml", res / "surveys" / "uls.yaml", res / "segment",
-                           0.3, margin)
+                           res / "scaled" / "scene" / "scene.yaml", quiet, res / "segment", 0.3, margin)
         ps = core._PlotSim(p, 0, 2, lambda m: None)
         assert ps._key({})[1].scanner.range_noise_m == 0
         # its trajectory-noise realisation is its own, not the survey file's (the recording's)
-        assert ps.survey["seed"] == core._own_realisation(yaml.safe_load((res / "surveys" / "uls.yaml").read_text()),
-                                                          0)["seed"]
+        assert ps.survey["seed"] == core._own_realisation(survey, 0)["seed"]
         pulses, _ = ps._trace({})
         sims[margin] = (ps.region, len(pulses["slot"]), ps.features({}))
     (r0, n0, f0), (r1, n1, f1) = sims[0.0], sims[15.0]
@@ -766,7 +769,7 @@ def hidden_threshold(quick_run, tmp_path_factory):
     out = tmp_path_factory.mktemp("hidden") / "forest"
     physics = {"als": {"beam_sample_quality": 4},
                "uls": {"beam_sample_quality": 4, "detection_threshold": {"min_energy": 10000.0}},
-               "tls": {"range_noise": {"sigma_m": 0.005}}}
+               "tls": {}}
     synthesize(QUICK_SYNTH, out, seed=0, physics=physics, quiet=True)
     return out, physics
 
@@ -782,11 +785,17 @@ def test_hidden_detection_threshold_is_found_fitted_and_improves_heldout_trees(q
     res = workdir / "results" / "Q1"
     assert (forest / "plots" / "Q1" / "tls" / "scan_1.laz").read_bytes() == \
         (workdir / "results" / "forest" / "plots" / "Q1" / "tls" / "scan_1.laz").read_bytes()
+    # the simulation with the recording's physical detector, so that the threshold is the one
+    # hidden difference (under HELIOS++ 1.0.8's rule a threshold also applies to every neighbour
+    # in the window: another effect)
+    survey = yaml.safe_load((res / "surveys" / "uls.yaml").read_text())
+    survey["detector"] = {"mode": "physical"}
+    (tmp_path / "uls.yaml").write_text(yaml.safe_dump(survey))
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(yaml.safe_dump({
         "scenario": "uls", "seed": 0, "folds": 3,
         "plots": {"Q1": {"scene": str(res / "scaled" / "scene" / "scene.yaml"),
-                         "survey": str(res / "surveys" / "uls.yaml"),
+                         "survey": str(tmp_path / "uls.yaml"),
                          "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
     out = tmp_path / "uls.json"
     proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(forest / "plots"),
@@ -892,7 +901,10 @@ class _LinearStudy:
     parameters (a fixed signature per unit step), trees differ by noise, and the "real" trees
     carry a reconstruction error (a systematic part + noise) beside any hidden effect."""
 
-    survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}, "platform": {}}
+    # the stand-in's survey: a 0.25 mrad half angle (a 0.294 mrad FWHM circle), against which its
+    # footprint signatures were scaled; no range noise, so that σ = 0 is the survey as given
+    survey = {"scanner": "riegl_minivux1uav", "platform": {},
+              "overrides": {"window_size_ns": 1.5, "beam_divergence_mrad": 0.25, "range_noise_m": 0.0}}
     has_scaled = True
 
     def __init__(self, hidden: dict, out_of_library=0.0, n_trees=30, seed=0, recon=0.5, equal_footprints=False,
@@ -1339,7 +1351,8 @@ def test_an_unseparated_footprint_group_reports_the_solid_angle_it_fits(monkeypa
     assert tie is not None and not tie["resolved"] and tie["winner"] == "beam_divergence"
     fit = rep["effects"][0]
     eq = fit["equivalent_circular_fwhm_mrad"]
-    assert eq == pytest.approx(fit["parameters"]["scale"] * 1.0 / np.sqrt(2.0 / np.log(2.0)))
+    # the survey's circle: 0.25 mrad half angle = 0.5 mrad full at 1/e² = 0.5 / √(2 / ln 2) FWHM
+    assert eq == pytest.approx(fit["parameters"]["scale"] * 0.5 / np.sqrt(2.0 / np.log(2.0)))
     assert f"{eq * eq:.3g} mrad²" in rep["verdict"] and "ellipse and circle not separated" in rep["verdict"]
     assert "aspect ratios are not identified" in tie["text"]
 
@@ -1617,5 +1630,5 @@ def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):
 def test_a_hidden_circle_gets_no_aspect(monkeypatch):
     rep = _run_logic(monkeypatch, _LinearStudy({"beam_divergence": {"scale": 2.0}}))
     assert rep["accepted"] == ["beam_divergence"], rep["verdict"]
-    d0 = 1.0 / np.sqrt(2.0 / np.log(2.0))  # the survey's circle at FWHM (1 mrad full at 1/e²)
+    d0 = 0.5 / np.sqrt(2.0 / np.log(2.0))  # the stand-in survey's circle at FWHM (0.5 mrad full at 1/e²)
     assert rep["beam_fwhm_mrad"] == pytest.approx([2 * d0, 2 * d0], rel=0.2)
