@@ -25,8 +25,9 @@ import math
 import numpy as np
 from numba import njit
 
+from vlsforest.domain.species import LAD_NAMES, check_lad
 from vlsforest.errors import ConfigError
-from vlsforest.pad.gfunc import LAD_NAMES, _check_lad, g_function
+from vlsforest.pad.gfunc import g_function
 from vlsforest.pad.traverse import Accumulators
 
 ESTIMATORS = ("transmittance", "fpl_unbiased")
@@ -142,7 +143,7 @@ def _per_voxel(value, n, name, kind):
     """A scalar or an array of n values (or of the grid shape, flattened)."""
     if kind == "lad":
         if isinstance(value, str):
-            return _check_lad(value, name), None
+            return check_lad(value, name), None
         arr = np.asarray(value, dtype=object).reshape(-1)
     else:
         if np.ndim(value) == 0:

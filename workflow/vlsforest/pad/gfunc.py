@@ -32,10 +32,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from vlsforest.domain.species import LAD_NAMES, check_lad
 from vlsforest.errors import ConfigError
-
-#: the supported leaf angle distributions
-LAD_NAMES = ("planophile", "erectophile", "plagiophile", "extremophile", "uniform", "spherical")
 
 #: LUT step (degrees)
 _STEP_DEG = 0.1
@@ -59,7 +57,7 @@ def leaf_inclination_pdf(lad: str, theta_l) -> np.ndarray:
     """
     t = np.asarray(theta_l, dtype=float)
     c = 2.0 / np.pi
-    name = _check_lad(lad)
+    name = check_lad(lad)
     if name == "planophile":
         return c * (1.0 + np.cos(2.0 * t))
     if name == "erectophile":
@@ -71,13 +69,6 @@ def leaf_inclination_pdf(lad: str, theta_l) -> np.ndarray:
     if name == "uniform":
         return np.full_like(t, c)
     return np.sin(t)  # spherical
-
-
-def _check_lad(lad, key: str = "lad") -> str:
-    name = str(lad).strip().lower()
-    if name not in LAD_NAMES:
-        raise ConfigError(f"{key}: unknown leaf angle distribution {lad!r}; known: {', '.join(LAD_NAMES)}")
-    return name
 
 
 def _projection(theta: float, theta_l: np.ndarray) -> np.ndarray:
@@ -150,7 +141,7 @@ def g_function(theta_deg, lad: str = "planophile") -> np.ndarray:
     ConfigError
         Unknown ``lad`` or an angle outside [0, 180].
     """
-    name = _check_lad(lad)
+    name = check_lad(lad)
     t = np.asarray(theta_deg, dtype=float)
     finite = np.isfinite(t)
     if np.any((t[finite] < -1e-9) | (t[finite] > 180.0 + 1e-9)):
@@ -167,7 +158,7 @@ def g_closed_form(lad: str, end: str) -> float:
 
     ``G(0) = ∫ cos θL f`` and ``G(π/2) = (2/π) ∫ sin θL f``; e.g. planophile 8/(3π) and 8/(3π²).
     """
-    name = _check_lad(lad)
+    name = check_lad(lad)
     g0 = {"planophile": 8 / (3 * np.pi), "erectophile": 4 / (3 * np.pi), "plagiophile": 32 / (15 * np.pi),
           "extremophile": 28 / (15 * np.pi), "uniform": 2 / np.pi, "spherical": 0.5}
     g90 = {"planophile": 8 / (3 * np.pi ** 2), "erectophile": 16 / (3 * np.pi ** 2),
