@@ -74,8 +74,8 @@ def run(args) -> int:
     model.save(args.output)
     if args.vox is not None:
         from vlsforest.io.vox import write_vox
-        from vlsforest.scene import _model_vox
+        from vlsforest.io.voxel_model import model_vox
 
-        write_vox(args.vox, _model_vox(model, None if model.half is None else 1.0))
+        write_vox(args.vox, model_vox(model, None if model.half is None else 1.0))
     print(f"voxels {args.method}: {model.n_voxels} cubes, side {model.sides().min():.4f}–{model.sides().max():.4f} m")
     return 0

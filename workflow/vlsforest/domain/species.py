@@ -17,11 +17,9 @@ from vlsforest.errors import ConfigError
 __all__ = [
     "GROUPS",
     "SPECIES_GROUPS",
-    "LAD_NAMES",
     "PAD_GROUPS",
     "species_key",
     "species_group",
-    "check_lad",
 ]
 
 #: the species groups, in display order
@@ -43,10 +41,8 @@ SPECIES_GROUPS = MappingProxyType({
     "conifer": "conifer",
 })
 
-#: the supported leaf angle distributions (de Wit's five and spherical)
-LAD_NAMES = ("planophile", "erectophile", "plagiophile", "extremophile", "uniform", "spherical")
-
-#: per species group: leaf angle distribution (``lad``) and PADmax in m²/m³ (``pad_max``)
+#: per species group: leaf angle distribution (``lad``, one of
+#: :data:`vlsforest.domain.leaf_angles.LAD_NAMES`) and PADmax in m²/m³ (``pad_max``)
 PAD_GROUPS = MappingProxyType({
     "broadleaf": MappingProxyType({"lad": "planophile", "pad_max": 5.0}),
     "conifer": MappingProxyType({"lad": "erectophile", "pad_max": 8.0}),
@@ -98,29 +94,3 @@ def species_group(species, default=_MISSING) -> str:
     if default is _MISSING:
         raise ConfigError(f"unknown species {species!r}: give one of {sorted(SPECIES_GROUPS)}")
     return default
-
-
-def check_lad(lad, key: str = "lad") -> str:
-    """Normalised name of a leaf angle distribution.
-
-    Parameters
-    ----------
-    lad : str
-        One of :data:`LAD_NAMES` (any case, surrounding blanks ignored).
-    key : str
-        Name of the setting, for the error message.
-
-    Returns
-    -------
-    str
-        The name in lower case.
-
-    Raises
-    ------
-    ConfigError
-        For a name not in :data:`LAD_NAMES`.
-    """
-    name = str(lad).strip().lower()
-    if name not in LAD_NAMES:
-        raise ConfigError(f"{key}: unknown leaf angle distribution {lad!r}; known: {', '.join(LAD_NAMES)}")
-    return name

@@ -25,9 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
-from vlsforest.domain.species import LAD_NAMES, check_lad
+from vlsforest.domain.leaf_angles import LAD_NAMES, check_lad, g_function
 from vlsforest.errors import ConfigError
-from vlsforest.pad.gfunc import g_function
 from vlsforest.pad.traverse import Accumulators
 
 ESTIMATORS = ("transmittance", "fpl_unbiased")
@@ -183,7 +182,7 @@ def estimate_pad(acc: Accumulators, lad="planophile", pad_max=5.0, estimator: st
     acc : Accumulators
         From :func:`vlsforest.pad.accumulate`.
     lad : str or array of str
-        Leaf angle distribution (:data:`~vlsforest.pad.gfunc.LAD_NAMES`), one for all voxels or
+        Leaf angle distribution (:data:`~vlsforest.domain.leaf_angles.LAD_NAMES`), one for all voxels or
         one per voxel (grid shape, or length n with ``ijk``).
     pad_max : float or array
         PADmax (m²/m³), one value or one per voxel like ``lad``.

@@ -1,5 +1,8 @@
 """Validation of PAD estimates against the virtual truth (true plant area per voxel).
 
+An analysis of two stages' outputs: the PAD estimates (:mod:`vlsforest.pad`) and the recorded
+virtual forest (:mod:`vlsforest.synth`).
+
 The truth of a recorded virtual forest folder (``truth/synth_settings.yaml`` + seed) is rebuilt
 deterministically: the plot layout with :func:`vlsforest.synth.forest_from_config`, the tree
 meshes with :func:`vlsforest.synth.generate_plot_trees`, and the exact one-sided plant area per

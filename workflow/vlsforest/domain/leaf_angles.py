@@ -32,8 +32,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from vlsforest.domain.species import LAD_NAMES, check_lad
 from vlsforest.errors import ConfigError
+
+#: the supported leaf angle distributions (de Wit's five and spherical)
+LAD_NAMES = ("planophile", "erectophile", "plagiophile", "extremophile", "uniform", "spherical")
 
 #: LUT step (degrees)
 _STEP_DEG = 0.1
@@ -69,6 +71,32 @@ def leaf_inclination_pdf(lad: str, theta_l) -> np.ndarray:
     if name == "uniform":
         return np.full_like(t, c)
     return np.sin(t)  # spherical
+
+
+def check_lad(lad, key: str = "lad") -> str:
+    """Normalised name of a leaf angle distribution.
+
+    Parameters
+    ----------
+    lad : str
+        One of :data:`LAD_NAMES` (any case, surrounding blanks ignored).
+    key : str
+        Name of the setting, for the error message.
+
+    Returns
+    -------
+    str
+        The name in lower case.
+
+    Raises
+    ------
+    ConfigError
+        For a name not in :data:`LAD_NAMES`.
+    """
+    name = str(lad).strip().lower()
+    if name not in LAD_NAMES:
+        raise ConfigError(f"{key}: unknown leaf angle distribution {lad!r}; known: {', '.join(LAD_NAMES)}")
+    return name
 
 
 def _projection(theta: float, theta_l: np.ndarray) -> np.ndarray:
@@ -171,4 +199,4 @@ def g_closed_form(lad: str, end: str) -> float:
     raise ConfigError(f"end: must be '0' or '90', got {end!r}")
 
 
-__all__ = ["LAD_NAMES", "leaf_inclination_pdf", "g_function", "fold_zenith", "g_closed_form"]
+__all__ = ["LAD_NAMES", "check_lad", "leaf_inclination_pdf", "g_function", "fold_zenith", "g_closed_form"]
