@@ -451,7 +451,7 @@ class Scene:
             # Embree commits the BVH lazily: force it with one ray
             self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
-    def trace(self, origins, dirs, with_labels: bool = False):
+    def trace(self, origins, dirs, with_labels: bool = False, serial: bool | None = None):
         """Nearest hit of each ray.
 
         Parameters
@@ -460,6 +460,8 @@ class Scene:
             Ray origins (world coordinates, float64) and unit directions.
         with_labels : bool
             Also return the face label of each hit (0 where none).
+        serial : bool, optional
+            Trace the voxel grids without numba threads (see :meth:`VoxelGrid.trace`).
 
         Returns
         -------
@@ -498,7 +500,7 @@ class Scene:
                 cos_inc[idx] = np.abs(dz[idx])
                 if with_labels:
                     label[idx] = 0
-        self._trace_grids(o, d, t, part, cos_inc, label)
+        self._trace_grids(o, d, t, part, cos_inc, label, serial)
         if with_labels:
             return t, part, cos_inc, label
         return t, part, cos_inc
@@ -524,12 +526,12 @@ class Scene:
         self.prepare()
         return self._shift.copy()
 
-    def trace_local(self, o32, d32, with_labels: bool = False, world=None):
+    def trace_local(self, o32, d32, with_labels: bool = False, world=None, serial: bool | None = None):
         """:meth:`trace` for float32 rays already in the Embree frame (world − :attr:`shift`).
 
         Saves the conversions when the caller builds its rays in float32 (the simulator does).
         ``world`` optionally passes the same rays in float64 world coordinates for the voxel
-        grids (otherwise rebuilt from the float32 ones).
+        grids (otherwise rebuilt from the float32 ones); ``serial`` as in :meth:`trace`.
         """
         self.prepare()
         res = self._embree.run(o32, d32, output=1)
@@ -545,7 +547,7 @@ class Scene:
             _hit_labels(gid, res["primID"], offsets, flat, label)
         if self.grids:
             o, d = world if world is not None else (o32.astype(np.float64) + self._shift, d32.astype(np.float64))
-            self._trace_grids(o, d, t, part, cos_inc, label)
+            self._trace_grids(o, d, t, part, cos_inc, label, serial)
         if with_labels:
             return t, part, cos_inc, label
         return t, part, cos_inc
@@ -570,10 +572,10 @@ class Scene:
         res = self._embree.run(o32, d32, output=1)
         return res["tfar"], res["geomID"], res["Ng"], self._embree_parts
 
-    def _trace_grids(self, o, d, t, part, cos_inc, label):
+    def _trace_grids(self, o, d, t, part, cos_inc, label, serial=None):
         """Update nearest hits (in place) with the voxel grids."""
         for g in self.grids:
-            tg, pg, face, _ = g.trace(o, d, t.copy())
+            tg, pg, face, _ = g.trace(o, d, t.copy(), serial=serial)
             better = (pg >= 0) & (tg < t)
             if better.any():
                 t[better] = tg[better]
