@@ -10,7 +10,7 @@
   returns are kept with their return number, number of returns and GPS time (multiple-return
   shares need them).
 * :func:`extract_simulated` takes the points of a simulated cloud by object id (each target's
-  stem and crown carry their own ids, :func:`vlsforest.scene.object_ids`).
+  stem and crown carry their own ids, :func:`vlsforest.domain.labels.object_ids`).
 """
 
 from __future__ import annotations
