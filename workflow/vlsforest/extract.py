@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from vlsforest.domain.species import species_group
+from vlsforest.domain.species import DEFAULT_GROUP, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud
 
@@ -69,7 +69,7 @@ def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.
         if tid in used:
             raise InputDataError(f"{source}: targets {used[tid]} and {target_id} both match segmented tree {tid}")
         used[tid] = target_id
-        species = str(t.get("species", "broadleaf"))
+        species = str(t.get("species", DEFAULT_GROUP))
         row = {"target_id": target_id, "tree_id": tid, "species": species, "group": species_group(species),
                "x": float(trees.x.iloc[i]), "y": float(trees.y.iloc[i]), "z": float(trees.z.iloc[i]),
                "dist": float(d[i])}

@@ -44,7 +44,7 @@ import numpy as np
 
 from vlsforest.domain.cubes import scaled_cubes
 from vlsforest.domain.leaf_angles import g_function
-from vlsforest.domain.species import PAD_GROUPS
+from vlsforest.domain.species import DEFAULT_GROUP, PAD_GROUPS
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.voxel_model import VoxelModel
 
@@ -149,7 +149,7 @@ class ModelInputs:
     species_of: dict
     pad: PadGrid | None = None
     seed: int = 0
-    default_group: str = "broadleaf"
+    default_group: str = DEFAULT_GROUP
 
 
 def cell_index(xyz, size: float) -> np.ndarray:
@@ -316,9 +316,25 @@ def _lookup(table_cells: np.ndarray, query_cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def pad_per_voxel(pad: PadGrid, owner, species_of: dict, default_group: str = "broadleaf",
+def pad_per_voxel(pad: PadGrid, owner, species_of: dict, default_group: str = DEFAULT_GROUP,
                   groups: dict | None = None, estimator: str = "transmittance"):
     """PAD of each cell of a PAD grid with the leaf angle distribution and PADmax of its owner's species group.
+
+    Parameters
+    ----------
+    pad : PadGrid
+        The cells and their transmittance (or attenuation) and mean shot angle.
+    owner : ndarray int64 (m,)
+        Tree id per cell.
+    species_of : dict int → str
+        Species group per tree id; trees not listed are in ``default_group``.
+    default_group : str
+        Group of the trees ``species_of`` does not list.
+    groups : dict, optional
+        Group → ``{"lad": …, "pad_max": …}``; default
+        :data:`vlsforest.domain.species.PAD_GROUPS`.
+    estimator : {"transmittance", "fpl_unbiased"}
+        Which column of the grid gives the attenuation.
 
     Returns
     -------

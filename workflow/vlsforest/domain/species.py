@@ -16,6 +16,7 @@ from vlsforest.errors import ConfigError
 
 __all__ = [
     "GROUPS",
+    "DEFAULT_GROUP",
     "SPECIES_GROUPS",
     "PAD_GROUPS",
     "species_key",
@@ -24,6 +25,8 @@ __all__ = [
 
 #: the species groups, in display order
 GROUPS = ("broadleaf", "conifer")
+#: group of a tree whose species is not given (a target without species, a surrounding tree)
+DEFAULT_GROUP = "broadleaf"
 
 #: species key → group: the study's target species (Fagus sylvatica, Carpinus betulus, Picea
 #: abies), the surrounding species the tree generator models, two more species of the study
