@@ -371,13 +371,13 @@ def test_single_return_ground_observables_leave_out_echoes_mixed_with_vegetation
 
 def test_disc_selection_under_the_crown_equals_brute_force():
     from vlsforest.diagnose.features import _within
-    from vlsforest.extract import _ColumnIndex
+    from vlsforest.extract import ColumnIndex
 
     rng = np.random.default_rng(6)
     xy = np.round(rng.uniform(-10, 10, (30000, 2)), 2)
     for k, (cx, cy, r) in enumerate([(0.0, 0.0, 1.0), (3.3, -2.7, 2.5), (9.9, 9.9, 1.5), (0.5, 0.5, 0.5)]):
         xy[4 * k:4 * k + 4] = [[cx + r, cy], [cx - r, cy], [cx, cy + r], [cx, cy - r]]  # on the circle
-    idx = _ColumnIndex(xy)
+    idx = ColumnIndex(xy)
     for cx, cy, r in [(0.0, 0.0, 1.0), (3.3, -2.7, 2.5), (9.9, 9.9, 1.5), (0.5, 0.5, 0.5), (-30, 0, 2)]:
         want = np.flatnonzero(np.sum((xy - [cx, cy]) ** 2, axis=1) <= r ** 2)
         assert np.array_equal(_within(xy, idx, cx, cy, r), want)
@@ -386,14 +386,14 @@ def test_disc_selection_under_the_crown_equals_brute_force():
 def test_column_index_boxes_equal_brute_force_for_small_and_large_grids_and_non_finite_points():
     # a grid of < 65 535 columns sorts 16-bit keys (radix), a larger one the int64 keys: both
     # must give every point of a box's columns, and points without finite x, y none
-    from vlsforest.extract import _ColumnIndex
+    from vlsforest.extract import ColumnIndex
 
     rng = np.random.default_rng(11)
     for side in (50.0, 400.0):  # 2 500 and 160 000 columns of 1 m
         xy = rng.uniform(0, side, (40000, 2))
         xy[:7] = [[np.nan, 1.0], [2.0, np.inf], [-np.inf, -np.inf], [np.nan, np.nan], [0.0, 0.0],
                   [side, side], [side / 2, 0.0]]
-        idx = _ColumnIndex(xy)
+        idx = ColumnIndex(xy)
         assert (idx.nx * idx.ny < 65535) == (side == 50.0)
         assert np.all(np.diff(idx.key) >= 0) and np.sum(idx.key < 0) == 4
         for x0, y0, x1, y1 in [(3.2, 4.7, 9.9, 12.1), (0, 0, 1, 1), (side - 2.5, 0.1, side, 3.0), (-5, -5, -1, -1)]:
@@ -1137,7 +1137,7 @@ def test_tls_occlusion_needs_scaled_cubes(monkeypatch):
 
 
 def test_occlusion_correction_raises_upper_crown_cubes_within_their_cells():
-    from vlsforest.voxels import VoxelModel
+    from vlsforest.io.voxel_model import VoxelModel
 
     size = 0.25
     ijk = np.array([[0, 0, z] for z in range(9)])            # one column, centres z = 0.125 … 2.125
@@ -1165,7 +1165,7 @@ def test_occlusion_corrected_scene_is_what_gets_traced(tmp_path):
     """The correction reaches the ray caster: a ray down onto a crown's top cube hits it higher
     by the growth of its half side (Scene.from_yaml with a voxel transform)."""
     from vlsforest.sim import Scene
-    from vlsforest.voxels import VoxelModel
+    from vlsforest.io.voxel_model import VoxelModel
 
     ijk = np.array([[0, 0, 0], [0, 0, 4]])
     VoxelModel(1.0, ijk, np.ones(2, int), np.array([0.2, 0.2]), (ijk + 0.5) * 1.0, np.ones(2)).save(tmp_path / "c.npz")

@@ -17,7 +17,6 @@ from vlsforest.pad import (
     FLAG_SATURATED,
     FLAG_UNSAMPLED,
     LAD_NAMES,
-    TABLE_COLUMNS,
     TlsScan,
     accumulate,
     estimate_pad,
@@ -27,6 +26,7 @@ from vlsforest.pad import (
     load_tls_scans,
     pad_to_vox,
 )
+from vlsforest.pad_validation import TABLE_COLUMNS, median_abs_bias
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
@@ -440,8 +440,6 @@ def test_quick_forest_pad_and_validation(quick_forest, tmp_path):
     # were left out), and the median |bias| over species × crown thirds ≤ 10 % (1.1 %, 3.3 %)
     assert np.all(np.abs(allb["bias_pct"]) <= 10.0), allb
     assert np.all(allb["rmse"] < allb["mean_true_pad"] * 1.5)
-    from vlsforest.pad.validate import median_abs_bias
-
     assert (median_abs_bias(table) <= 10.0).all(), median_abs_bias(table)
     capped = allb[allb["estimator"] == "transmittance"]["bias_pct_capped"]
     assert np.all(np.abs(capped) <= 10.0), capped

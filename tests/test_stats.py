@@ -379,4 +379,6 @@ def test_bad_tables(tmp_path):
 def test_method_order_never_hard_codes():
     assert stats.method_order(["zzz", "scaled", "reference", "aaa", "fixed_0.02", "fixed_0.25"]) == [
         "fixed_0.25", "fixed_0.02", "scaled", "aaa", "zzz"]
-    assert stats.species_group("abies_alba") == "other"
+    # by group (broadleaf, conifer, then species of no known group), then by name
+    assert stats.species_order(["quercus_robur", "picea_abies", "abies_alba", "fagus_sylvatica", "picea_abies"]) == [
+        "fagus_sylvatica", "abies_alba", "picea_abies", "quercus_robur"]

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
+from vlsforest.domain.leaf_angles import leaf_inclination_pdf
 from vlsforest.errors import ConfigError
 from vlsforest.synth import (
     ORGAN_BRANCH,
@@ -19,7 +20,6 @@ from vlsforest.synth import (
     TABLE1,
     TreeParams,
     generate_tree,
-    leaf_angle_pdf,
     sample_tree_params,
     target_tree_params,
     true_plant_area,
@@ -216,23 +216,23 @@ def _inclinations(g):
                                           ("picea_abies", "erectophile")])
 def test_leaf_inclination_matches_de_wit(target_trees, species, dist):
     th = _inclinations(target_trees[species])
-    norm = quad(lambda t: leaf_angle_pdf(dist, t), 0, np.pi / 2)[0]
-    mean = quad(lambda t: t * leaf_angle_pdf(dist, t), 0, np.pi / 2)[0]
-    sd = math.sqrt(quad(lambda t: (t - mean) ** 2 * leaf_angle_pdf(dist, t), 0, np.pi / 2)[0])
+    norm = quad(lambda t: leaf_inclination_pdf(dist, t), 0, np.pi / 2)[0]
+    mean = quad(lambda t: t * leaf_inclination_pdf(dist, t), 0, np.pi / 2)[0]
+    sd = math.sqrt(quad(lambda t: (t - mean) ** 2 * leaf_inclination_pdf(dist, t), 0, np.pi / 2)[0])
     assert norm == pytest.approx(1.0, abs=1e-9)
     # 5 standard errors of the sample mean
     assert abs(th.mean() - mean) < 5 * sd / math.sqrt(th.size) + 1e-3, (th.mean(), mean)
     # the whole distribution: Kolmogorov–Smirnov distance against the analytic CDF
     grid = np.sort(th)
-    cdf = np.array([quad(lambda t: leaf_angle_pdf(dist, t), 0, x)[0]
+    cdf = np.array([quad(lambda t: leaf_inclination_pdf(dist, t), 0, x)[0]
                     for x in grid[:: max(1, grid.size // 400)]])
     emp = (np.arange(grid.size)[:: max(1, grid.size // 400)] + 0.5) / grid.size
     assert np.abs(cdf - emp).max() < 0.01
 
 
 def test_planophile_and_erectophile_means_differ_as_expected():
-    pl = quad(lambda t: t * leaf_angle_pdf("planophile", t), 0, np.pi / 2)[0]
-    er = quad(lambda t: t * leaf_angle_pdf("erectophile", t), 0, np.pi / 2)[0]
+    pl = quad(lambda t: t * leaf_inclination_pdf("planophile", t), 0, np.pi / 2)[0]
+    er = quad(lambda t: t * leaf_inclination_pdf("erectophile", t), 0, np.pi / 2)[0]
     assert pl < np.radians(30) < np.radians(60) < er
     assert pl + er == pytest.approx(np.pi / 2)  # mirror-symmetric densities
 

@@ -279,6 +279,28 @@ def test_nadir_rays_hit_top_faces():
     np.testing.assert_array_equal(g.voxel_ijk(vox[hit])[:, 2], ktop[hit])
 
 
+def test_serial_argument_chooses_the_kernel(monkeypatch):
+    # the kernel follows the call's argument, not module state: a forked worker asks for the
+    # single-threaded one; both give the same hits
+    from vlsforest.sim import _voxelgrid
+
+    rng = np.random.default_rng(5)
+    h = 0.1
+    ijk = _random_cells(rng, 500, (0, 0, 0), (20, 20, 20), 0.2)
+    g = VoxelGrid.build(ijk, np.zeros(3), h)
+    o, d = _rays(rng, *g.bounds, 500)
+    used = []
+    for name in ("_trace_kernel", "_trace_kernel_serial"):
+        kernel = getattr(_voxelgrid, name)
+        monkeypatch.setattr(_voxelgrid, name, lambda *a, _k=kernel, _n=name: (used.append(_n), _k(*a))[1])
+    serial = g.trace(o, d, serial=True)
+    parallel = g.trace(o, d, serial=False)
+    assert used == ["_trace_kernel_serial", "_trace_kernel"]
+    assert np.isfinite(serial[0]).any()
+    for a, b in zip(serial, parallel):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_tmax_is_honoured():
     rng = np.random.default_rng(5)
     h = 0.25

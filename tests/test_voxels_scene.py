@@ -12,19 +12,20 @@ import pytest
 import yaml
 
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.domain.cubes import scaled_cubes
+from vlsforest.domain.labels import object_ids
 from vlsforest.extract import extract_reference, extract_simulated, match_targets
 from vlsforest.io.las import PointCloud
 from vlsforest.io.mesh import TriangleMesh, write_mesh
 from vlsforest.io.vox import read_vox
-from vlsforest.scene import assemble_scene, export_helios, object_ids
+from vlsforest.io.voxel_model import VoxelModel
+from vlsforest.scene import assemble_scene, export_helios
 from vlsforest.voxels import (
     ModelInputs,
     PadGrid,
-    VoxelModel,
     build_model,
     cell_centroids,
     fixed_voxels,
-    scaled_cubes,
     shift_cubes,
 )
 
@@ -345,12 +346,12 @@ def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypat
     """Dense, touching and overlapping trees, points at the radius and exact ties: the cell
     shortcuts of the labeller (and its fallback for trees without a grid: every tree's box too
     large, or the memory budget spent after some) give the labels of the exact distances."""
-    from vlsforest.extract import _TreeLabeller
+    from vlsforest.extract import TreeLabeller
 
     if max_cells is not None:
-        monkeypatch.setattr(_TreeLabeller, "_MAX_CELLS", max_cells)
+        monkeypatch.setattr(TreeLabeller, "_MAX_CELLS", max_cells)
     if max_total is not None:
-        monkeypatch.setattr(_TreeLabeller, "_MAX_TOTAL_CELLS", max_total)
+        monkeypatch.setattr(TreeLabeller, "_MAX_TOTAL_CELLS", max_total)
     rng = np.random.default_rng(5)
     trees = {t: rng.normal([1.2 * t, 0.0, 8.0], [0.5, 0.5, 2.0], (4000, 3)) for t in (7, 3, 5, 1)}
     trees[11] = np.array([[0.0, 5.0, 1.0]])          # a one-point tree …
@@ -360,7 +361,7 @@ def test_extract_reference_cell_shortcuts_give_the_nearest_tree_labels(monkeypat
                                [0.0, 5.3, 1.0],      # exactly at the radius of tree 11
                                [0.0, 5.0, 1.31]])])  # just outside it
     cloud = PointCloud(xyz, {"classification": np.full(len(xyz), 5, np.uint8)})
-    lab = _TreeLabeller(trees, 0.3)
+    lab = TreeLabeller(trees, 0.3)
     with_grid = [tid for tid, *_, codes in lab.trees if codes is not None]
     assert len(with_grid) == {(None, None): 6, (1000, None): 2, (None, 150000): 4}[(max_cells, max_total)]
     got = extract_reference(trees, cloud, 0.3)
@@ -402,12 +403,12 @@ def test_extract_reference_leaves_ground_out_so_cbh_is_the_crowns():
 
 
 def test_column_index_boxes_miss_no_point():
-    from vlsforest.extract import _ColumnIndex
+    from vlsforest.extract import ColumnIndex
 
     rng = np.random.default_rng(5)
     xy = np.round(rng.uniform(-20, 30, size=(20000, 2)), 1)  # many points exactly on column edges
     xy[::97] = np.nan
-    idx = _ColumnIndex(xy, cell=1.0)
+    idx = ColumnIndex(xy, cell=1.0)
     for k in range(60):
         x0, y0 = np.round(rng.uniform(-25, 32, 2), 1 if k % 2 else 3)
         x1, y1 = x0 + rng.uniform(0, 8), y0 + (0.0 if k % 3 == 0 else rng.uniform(0, 8))
@@ -418,7 +419,7 @@ def test_column_index_boxes_miss_no_point():
         # only whole columns that meet the box: nothing farther than one column away
         if len(got):
             assert (xy[got, 0] > x0 - 1.0).all() and (xy[got, 0] < x1 + 1.0).all()
-    assert len(idx.box(100, 100, 110, 110)) == 0 and len(_ColumnIndex(np.zeros((0, 2))).box(0, 0, 1, 1)) == 0
+    assert len(idx.box(100, 100, 110, 110)) == 0 and len(ColumnIndex(np.zeros((0, 2))).box(0, 0, 1, 1)) == 0
 
 
 def test_extract_reference_matches_brute_force():

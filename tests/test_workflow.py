@@ -475,7 +475,8 @@ def test_every_study_method_simulates_on_the_quick_plot(quick_run, tmp_path):
     plot's crown points and PAD grid, assembles into a scene and simulates without error; every
     target crown returns points under its own object id; voxel counts grow as the cells shrink
     and the scaled models never outnumber the 0.25 m cells."""
-    from vlsforest.scene import assemble_scene, object_ids
+    from vlsforest.domain.labels import object_ids
+    from vlsforest.scene import assemble_scene
     from vlsforest.sim import Scene, simulate
     from vlsforest.sim.survey import survey_from_dict
     from vlsforest.voxels import ModelInputs, PadGrid, build_model
@@ -522,7 +523,7 @@ def test_one_metre_region_margin_keeps_every_target_return(quick_run, scenario, 
     traced sub-rays. Checked on the coarsest fixed cells (0.25 m), which reach furthest beyond
     the points, with each voxel back-end: `auto` may route a lattice to the other back-end
     for fewer rays, and the two differ on rays that graze a cube edge (see the README)."""
-    from vlsforest.scene import object_ids
+    from vlsforest.domain.labels import object_ids
     from vlsforest.sim import Scene, load_survey, simulate
 
     workdir, _, _ = quick_run

@@ -1,4 +1,4 @@
-"""Kernel of the tree labeller's cell shortcuts (:class:`vlsforest.extract._TreeLabeller`).
+"""Kernel of the tree labeller's cell shortcuts (:class:`vlsforest.extract.TreeLabeller`).
 
 Kept apart from :mod:`vlsforest.extract` so that commands that never label by distance do not
 import numba.

@@ -10,7 +10,7 @@
   returns are kept with their return number, number of returns and GPS time (multiple-return
   shares need them).
 * :func:`extract_simulated` takes the points of a simulated cloud by object id (each target's
-  stem and crown carry their own ids, :func:`vlsforest.scene.object_ids`).
+  stem and crown carry their own ids, :func:`vlsforest.domain.labels.object_ids`).
 """
 
 from __future__ import annotations
@@ -18,29 +18,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from vlsforest.domain.species import DEFAULT_GROUP, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud
-
-def _species_groups() -> dict:
-    from vlsforest.synth.species import SPECIES
-
-    groups = {name: sp.group for name, sp in SPECIES.items()}  # the tree generator's species
-    # species the generator does not model, and the group names themselves
-    groups.update({"acer_pseudoplatanus": "broadleaf", "abies_alba": "conifer",
-                   "broadleaf": "broadleaf", "conifer": "conifer"})
-    return groups
-
-
-#: species → group (leaf angle distribution and PADmax follow the group)
-SPECIES_GROUP = _species_groups()
-
-
-def species_group(species: str) -> str:
-    """``broadleaf`` or ``conifer`` for a species name (ConfigError if unknown)."""
-    try:
-        return SPECIES_GROUP[str(species).strip().lower()]
-    except KeyError:
-        raise ConfigError(f"unknown species {species!r}: give one of {sorted(SPECIES_GROUP)}") from None
 
 
 def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.0,
@@ -89,7 +69,7 @@ def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.
         if tid in used:
             raise InputDataError(f"{source}: targets {used[tid]} and {target_id} both match segmented tree {tid}")
         used[tid] = target_id
-        species = str(t.get("species", "broadleaf"))
+        species = str(t.get("species", DEFAULT_GROUP))
         row = {"target_id": target_id, "tree_id": tid, "species": species, "group": species_group(species),
                "x": float(trees.x.iloc[i]), "y": float(trees.y.iloc[i]), "z": float(trees.z.iloc[i]),
                "dist": float(d[i])}
@@ -100,21 +80,40 @@ def match_targets(trees: pd.DataFrame, targets: list[dict], max_dist: float = 1.
                                        "height", "dist"])
 
 
-def _stable_argsort(key: np.ndarray) -> np.ndarray:
-    """``np.argsort(key, kind="stable")`` of integer keys; by 16-bit radix (≈ 6× faster on 10⁷
-    keys) when every key lies in [0, 65535)."""
+def stable_argsort(key: np.ndarray) -> np.ndarray:
+    """Stable sort order of integer keys.
+
+    Parameters
+    ----------
+    key : ndarray of int
+        Keys, e.g. the tree label of each point.
+
+    Returns
+    -------
+    ndarray int64
+        ``np.argsort(key, kind="stable")``, computed by a 16-bit radix sort (about 6× faster on
+        10⁷ keys) when every key lies in [0, 65535).
+    """
     if len(key) and key.min() >= 0 and key.max() < np.iinfo(np.uint16).max:
         return np.argsort(key.astype(np.uint16), kind="stable")
     return np.argsort(key, kind="stable")
 
 
-class _ColumnIndex:
+class ColumnIndex:
     """Points bucketed into square columns of side ``cell`` (m), to gather the points of a
     horizontal box without scanning the whole cloud.
 
     :meth:`box` returns a superset of the points inside the box (whole columns); the caller
     applies the exact test. Column indices grow monotonically with x and y in floating point, so
     no point inside the box is missed.
+
+    Parameters
+    ----------
+    xy : ndarray (n, 2)
+        Horizontal coordinates of the points; points without finite coordinates are in no
+        column.
+    cell : float
+        Column side (m).
     """
 
     def __init__(self, xy: np.ndarray, cell: float = 1.0):
@@ -133,7 +132,7 @@ class _ColumnIndex:
         key = i * self.ny + j
         if not every:
             key[~ok] = -1
-        self.order = _stable_argsort(key + 1)  # key + 1 ≥ 0: the same order as key's
+        self.order = stable_argsort(key + 1)  # key + 1 ≥ 0: the same order as key's
         self.key = key[self.order]
 
     def box(self, x0, y0, x1, y1) -> np.ndarray:
@@ -178,10 +177,10 @@ def extract_reference(tree_points: dict, cloud: PointCloud, radius: float,
     ndarray int64 (n,)
         Tree id per point of ``cloud``; 0 = no target tree.
     """
-    return _TreeLabeller(tree_points, radius)(cloud, exclude_classes)
+    return TreeLabeller(tree_points, radius)(cloud, exclude_classes)
 
 
-class _TreeLabeller:
+class TreeLabeller:
     """:func:`extract_reference` with the trees' search structures built once, for labelling
     many clouds against the same TLS trees (the diagnosis labels every simulation it runs).
 
@@ -196,6 +195,15 @@ class _TreeLabeller:
     whose grid would exceed :attr:`_MAX_CELLS` cells (a box tens of metres wide, e.g. a stray
     point), or the trees after the grids reach :attr:`_MAX_TOTAL_CELLS` together, have none: all
     points in their boxes are queried.
+
+    Parameters
+    ----------
+    tree_points : dict int → ndarray (m, 3)
+        TLS points of each target tree.
+    radius : float
+        Labelling radius (m), > 0; see :func:`extract_reference`.
+    workers : int
+        Threads of the nearest-point queries.
     """
 
     _MAX_CELLS = 16_000_000  # a tree whose grid would be larger has none (its points are all queried)
@@ -240,7 +248,7 @@ class _TreeLabeller:
 
     def __call__(self, cloud: PointCloud, exclude_classes=NOT_TREE_CLASSES, columns=None) -> np.ndarray:
         """Tree id per point of ``cloud`` (0 = none); see :func:`extract_reference`. ``columns``:
-        a :class:`_ColumnIndex` of the cloud's x, y if one is at hand."""
+        a :class:`ColumnIndex` of the cloud's x, y if one is at hand."""
         from vlsforest._treecells import near_points
 
         radius = self.radius
@@ -257,7 +265,7 @@ class _TreeLabeller:
         lo = np.array([xyz[:, k].min() for k in range(3)])
         hi = np.array([xyz[:, k].max() for k in range(3)])
         if columns is None:
-            columns = _ColumnIndex(xyz[:, :2])  # a tree's box then reads only the points of its columns
+            columns = ColumnIndex(xyz[:, :2])  # a tree's box then reads only the points of its columns
         xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         n_near = np.zeros(n, dtype=np.int32)  # trees the point is near to
         in_inner = np.zeros(n, dtype=bool)    # inside the inner cells of (one of) them
@@ -316,4 +324,5 @@ def extract_simulated(cloud: PointCloud, id_map: dict) -> np.ndarray:
     return out
 
 
-__all__ = ["NOT_TREE_CLASSES", "SPECIES_GROUP", "extract_reference", "extract_simulated", "match_targets", "species_group"]
+__all__ = ["NOT_TREE_CLASSES", "ColumnIndex", "TreeLabeller", "extract_reference", "extract_simulated", "match_targets",
+           "stable_argsort"]

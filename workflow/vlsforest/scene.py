@@ -8,7 +8,7 @@ A plot scene (:func:`assemble_scene`) is a SCENE.yaml for :mod:`vlsforest.sim` w
   method's voxels of the tree's other TLS points;
 * every surrounding tree as voxels of the method;
 
-with object ids (:func:`object_ids`) that separate each target's stem (``10·t + 1``) and crown
+with object ids (:func:`vlsforest.domain.labels.object_ids`) that separate each target's stem (``10·t + 1``) and crown
 (``10·t + 2``, t = segmented tree id) from the surrounding trees (``2``) and the ground (``1``),
 and materials (reflectance of foliage for voxels, wood for stems, ground for the plane).
 
@@ -28,23 +28,13 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import yaml
 
+from vlsforest.domain.cubes import cube_triangles
+from vlsforest.domain.labels import GROUND_ID, SURROUNDING_ID, object_ids
 from vlsforest.errors import ConfigError, InputDataError
-from vlsforest.voxels import VoxelModel
-
-#: object ids of the ground plane and of all surrounding (non-target) trees
-GROUND_ID = 1
-SURROUNDING_ID = 2
+from vlsforest.io.voxel_model import VoxelModel, model_vox
 
 #: default reflectances of scene materials (fractions at the scanner wavelength)
 DEFAULT_REFLECTANCE = {"foliage": 0.45, "wood": 0.35, "ground": 0.3}
-
-
-def object_ids(tree_id: int) -> tuple[int, int]:
-    """Object ids ``(stem, crown)`` of target tree ``tree_id``."""
-    t = int(tree_id)
-    if t <= 0:
-        raise ConfigError(f"target tree ids must be positive, got {tree_id}")
-    return 10 * t + 1, 10 * t + 2
 
 
 def crown_points(xyz, tree_id, stem_masks: dict | None = None):
@@ -148,29 +138,6 @@ def assemble_scene(out: Path, model: VoxelModel, targets, stems: dict, ground_z:
     return out
 
 
-def _cubes_obj(model: VoxelModel) -> tuple[np.ndarray, np.ndarray]:
-    from vlsforest.sim.scene import _CUBE_CORNERS, _CUBE_FACES
-
-    c = model.centres()
-    h = 0.5 * model.sides()
-    verts = (c[:, None, :] + h[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
-    faces = (_CUBE_FACES[None] + 8 * np.arange(len(c))[:, None, None]).reshape(-1, 3)
-    return verts, faces
-
-
-def _model_vox(model: VoxelModel, pad_max: float | None):
-    """A VoxFile for a voxel model (local grid; fixed cubes or unshifted scaled cubes)."""
-    from vlsforest.io.vox import make_vox
-
-    lo = model.ijk.min(axis=0)
-    cols = {}
-    if pad_max is not None:
-        # PAD' such that a0·(PAD'/pad_max)^0.5 equals our side: (side/a0)² · pad_max
-        cols["PadBVTotal"] = (model.sides() / model.size) ** 2 * pad_max
-    return make_vox(model.ijk - lo, model.size, lo * model.size, cols, max_pad=pad_max,
-                    header={"type": "TLS", "build-version": "1.4.3"})
-
-
 def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Path:
     """Write a SCENE.yaml (as made by :func:`assemble_scene`) as a HELIOS++ scene.
 
@@ -229,21 +196,21 @@ def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Pat
             shifted = model.centre is not None and not np.allclose(model.centre, (model.ijk + 0.5) * model.size)
             if model.half is None:
                 fname = f"part_{pid}.vox"
-                write_vox(out_dir / fname, _model_vox(model, None))
+                write_vox(out_dir / fname, model_vox(model, None))
                 lines += ['      <filter type="detailedVoxels">',
                           f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
                           '        <param type="string" key="intersectionMode" value="fixed" />',
                           "      </filter>", material(p)]
             elif not shifted:
                 fname = f"part_{pid}.vox"
-                write_vox(out_dir / fname, _model_vox(model, 1.0))
+                write_vox(out_dir / fname, model_vox(model, 1.0))
                 lines += ['      <filter type="detailedVoxels">',
                           f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
                           '        <param type="string" key="intersectionMode" value="scaled" />',
                           '        <param type="double" key="intersectionArgument" value="0.5" />',
                           "      </filter>", material(p)]
             else:
-                v, f = _cubes_obj(model)
+                v, f = cube_triangles(model.centres(), 0.5 * model.sides())
                 fname = f"part_{pid}.obj"
                 write_mesh(out_dir / fname, TriangleMesh(v, f))
                 lines += ['      <filter type="objloader">',
@@ -259,5 +226,4 @@ def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Pat
     return xml
 
 
-__all__ = ["DEFAULT_REFLECTANCE", "GROUND_ID", "SURROUNDING_ID", "assemble_scene", "crown_points",
-           "export_helios", "object_ids"]
+__all__ = ["DEFAULT_REFLECTANCE", "assemble_scene", "crown_points", "export_helios"]

@@ -975,11 +975,11 @@ def segment_cloud(cloud, config: SegmentConfig | None = None, source: str = "clo
 
 def _writable(cloud):
     """The cloud without attributes that ``write_las`` cannot place (LAS flag bits)."""
-    from vlsforest.io.las import _STANDARD, PointCloud
+    from vlsforest.io.las import PointCloud
 
     flags = {"synthetic", "key_point", "withheld", "overlap", "scanner_channel", "scan_direction_flag",
              "edge_of_flight_line", "scan_angle_rank", "classification_flags"}
-    attrs = {k: v for k, v in cloud.attrs.items() if k not in flags or k in _STANDARD}
+    attrs = {k: v for k, v in cloud.attrs.items() if k not in flags}
     return PointCloud(cloud.xyz, attrs)
 
 

@@ -31,8 +31,9 @@ The public functions turn them into
 Ordering: methods are ordered :data:`KNOWN_METHODS` first (in that order), then any other method
 alphabetically; scenarios ``als, uls`` first, then others alphabetically; species by group
 (broadleaf, conifer, other) and then name. Species map to groups through
-:data:`SPECIES_GROUPS`; an unknown species belongs to the group ``"other"``, which is summarised
-but left out of the conifer-vs-broadleaf tests.
+:func:`vlsforest.domain.species.species_group`; a species it does not know belongs to the group
+``"other"`` (:data:`OTHER_GROUP`), which is summarised but left out of the conifer-vs-broadleaf
+tests.
 
 Documented values for degenerate inputs (never an exception):
 
@@ -58,18 +59,26 @@ import numpy as np
 import pandas as pd
 from scipy import stats as _st
 
+from vlsforest.domain.species import GROUPS, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.metrics import METRIC_COLUMNS
 
 __all__ = [
     "REFERENCE",
     "KNOWN_METHODS",
-    "SPECIES_GROUPS",
+    "OTHER_GROUP",
+    "GROUP_ORDER",
     "ID_COLUMNS",
     "FLOAT_FORMAT",
-    "species_group",
     "method_order",
+    "scenario_order",
+    "species_order",
     "read_table",
+    "check_columns",
+    "prepare_metrics",
+    "check_errors",
+    "block_rng",
+    "bootstrap_mean_ci",
     "load_metrics",
     "load_voxel_counts",
     "load_sim_times",
@@ -92,13 +101,10 @@ KNOWN_METHODS = (
 )
 #: scenarios in display order (others follow alphabetically)
 KNOWN_SCENARIOS = ("als", "uls")
-#: species → group; unknown species are in group ``"other"``
-SPECIES_GROUPS = {
-    "fagus_sylvatica": "broadleaf",
-    "carpinus_betulus": "broadleaf",
-    "picea_abies": "conifer",
-}
-GROUP_ORDER = ("broadleaf", "conifer", "other")
+#: group of the species that :func:`vlsforest.domain.species.species_group` does not know
+OTHER_GROUP = "other"
+#: species groups in display order
+GROUP_ORDER = (*GROUPS, OTHER_GROUP)
 #: identifying columns of ``tree_metrics.csv``
 ID_COLUMNS = ("plot", "tree_id", "species", "scenario", "method")
 #: float format of every CSV written here
@@ -132,9 +138,9 @@ _PENETRATION_DIR = {
 # --------------------------------------------------------------------------- helpers / IO
 
 
-def species_group(species: str) -> str:
-    """Group of a species: ``"broadleaf"``, ``"conifer"`` or ``"other"`` (unknown species)."""
-    return SPECIES_GROUPS.get(str(species), "other")
+def _group(species) -> str:
+    """Group of a species, :data:`OTHER_GROUP` for a species of no known group."""
+    return species_group(species, default=OTHER_GROUP)
 
 
 def method_order(methods) -> list[str]:
@@ -146,14 +152,38 @@ def method_order(methods) -> list[str]:
     return [m for m in KNOWN_METHODS if m in present] + sorted(present - set(KNOWN_METHODS))
 
 
-def _scenario_order(scenarios) -> list[str]:
+def scenario_order(scenarios) -> list[str]:
+    """Distinct scenarios in display order.
+
+    Parameters
+    ----------
+    scenarios : iterable
+        Scenario names (repeats allowed).
+
+    Returns
+    -------
+    list of str
+        ``als``, ``uls`` first when present, then the others alphabetically.
+    """
     present = {str(s) for s in scenarios}
     return [s for s in KNOWN_SCENARIOS if s in present] + sorted(present - set(KNOWN_SCENARIOS))
 
 
-def _species_order(species) -> list[str]:
+def species_order(species) -> list[str]:
+    """Distinct species in display order.
+
+    Parameters
+    ----------
+    species : iterable
+        Species names (repeats allowed).
+
+    Returns
+    -------
+    list of str
+        Sorted by group (:data:`GROUP_ORDER`), then by name.
+    """
     present = {str(s) for s in species}
-    return sorted(present, key=lambda s: (GROUP_ORDER.index(species_group(s)), s))
+    return sorted(present, key=lambda s: (GROUP_ORDER.index(_group(s)), s))
 
 
 def _tree_sort_key(values: pd.Series) -> pd.Series:
@@ -192,10 +222,33 @@ def read_table(path, required, *, numeric=(), str_columns=()) -> pd.DataFrame:
         raise InputDataError(f"{path}: the file is empty") from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise InputDataError(f"{path}: not a readable CSV file ({exc})") from None
-    return _check_columns(df, required, numeric=numeric, source=str(path))
+    return check_columns(df, required, numeric=numeric, source=str(path))
 
 
-def _check_columns(df: pd.DataFrame, required, *, numeric=(), source: str) -> pd.DataFrame:
+def check_columns(df: pd.DataFrame, required, *, numeric=(), source: str) -> pd.DataFrame:
+    """A table with its required columns checked and its numeric columns converted.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        The table.
+    required : sequence of str
+        Columns that must be present.
+    numeric : sequence of str
+        Columns converted to float64; empty cells become NaN, other non-numbers are errors.
+    source : str
+        Name of the table for messages.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy with the numeric columns as float64.
+
+    Raises
+    ------
+    InputDataError
+        For a missing column, an empty table or a non-numeric value in a numeric column.
+    """
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise InputDataError(f"{source}: missing column(s) {', '.join(missing)}")
@@ -231,8 +284,28 @@ def load_sim_times(path) -> pd.DataFrame:
     )
 
 
-def _prepare_metrics(metrics: pd.DataFrame, source: str) -> pd.DataFrame:
-    df = _check_columns(metrics, ID_COLUMNS + METRIC_COLUMNS, numeric=METRIC_COLUMNS, source=source)
+def prepare_metrics(metrics: pd.DataFrame, source: str) -> pd.DataFrame:
+    """A tree-metrics table (``tree_metrics.csv``) checked for the analysis.
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame
+        Columns :data:`ID_COLUMNS` and the metric columns.
+    source : str
+        Name of the table for messages.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy with identifying columns as str and metrics as float64.
+
+    Raises
+    ------
+    InputDataError
+        For missing columns or values, duplicate tree × scenario × method rows, a tree with two
+        species, or no ``reference`` rows.
+    """
+    df = check_columns(metrics, ID_COLUMNS + METRIC_COLUMNS, numeric=METRIC_COLUMNS, source=source)
     for c in ID_COLUMNS:
         if df[c].isna().any():
             raise InputDataError(f"{source}: column {c!r} has empty values")
@@ -273,7 +346,7 @@ def compute_errors(metrics: pd.DataFrame, *, source: str = "tree metrics") -> pd
         rel_error`` (``rel_error`` in percent of ``|ref|``), ordered by method, scenario, plot,
         tree and metric (:data:`~vlsforest.metrics.METRIC_COLUMNS` order).
     """
-    df = _prepare_metrics(metrics, source)
+    df = prepare_metrics(metrics, source)
     key = ["plot", "tree_id", "scenario"]
     ref = df[df["method"] == REFERENCE]
     sim = df[df["method"] != REFERENCE]
@@ -281,13 +354,13 @@ def compute_errors(metrics: pd.DataFrame, *, source: str = "tree metrics") -> pd
     long_sim = sim.melt(id_vars=list(ID_COLUMNS), value_vars=cols, var_name="metric", value_name="sim")
     long_ref = ref.melt(id_vars=key, value_vars=cols, var_name="metric", value_name="ref")
     out = long_sim.merge(long_ref, on=key + ["metric"], how="left")
-    out["group"] = out["species"].map(species_group)
+    out["group"] = out["species"].map(_group)
     with np.errstate(divide="ignore", invalid="ignore"):
         out["error"] = out["sim"] - out["ref"]
         rel = 100.0 * out["error"] / out["ref"].abs()
     out["rel_error"] = rel.where(out["ref"] != 0)
     out["_m"] = out["method"].map({m: i for i, m in enumerate(method_order(out["method"]))})
-    out["_s"] = out["scenario"].map({s: i for i, s in enumerate(_scenario_order(out["scenario"]))})
+    out["_s"] = out["scenario"].map({s: i for i, s in enumerate(scenario_order(out["scenario"]))})
     out["_k"] = out["metric"].map({c: i for i, c in enumerate(cols)})
     out["_t"] = _tree_sort_key(out["tree_id"])
     out = out.sort_values(["_m", "_s", "plot", "_t", "tree_id", "_k"], kind="stable")
@@ -296,13 +369,28 @@ def compute_errors(metrics: pd.DataFrame, *, source: str = "tree metrics") -> pd
     return out.reset_index(drop=True)
 
 
-def _errors_check(errors: pd.DataFrame, source: str = "errors") -> pd.DataFrame:
+def check_errors(errors: pd.DataFrame, source: str = "errors") -> pd.DataFrame:
+    """An errors table (as :func:`compute_errors` returns it) checked for the analysis.
+
+    Parameters
+    ----------
+    errors : pandas.DataFrame
+        Columns ``plot, tree_id, species, scenario, method, metric, sim, ref, error,
+        rel_error`` (``group`` optional).
+    source : str
+        Name of the table for messages.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy with identifying columns as str, values as float64 and a ``group`` column.
+    """
     need = ("plot", "tree_id", "species", "scenario", "method", "metric", "sim", "ref", "error", "rel_error")
-    df = _check_columns(errors, need, numeric=("sim", "ref", "error", "rel_error"), source=source)
+    df = check_columns(errors, need, numeric=("sim", "ref", "error", "rel_error"), source=source)
     for c in ("plot", "tree_id", "species", "scenario", "method", "metric"):
         df[c] = df[c].astype(str)
     if "group" not in df.columns:
-        df["group"] = df["species"].map(species_group)
+        df["group"] = df["species"].map(_group)
     return df
 
 
@@ -327,8 +415,8 @@ def _wide(df: pd.DataFrame, values=("error", "rel_error", "sim", "ref")):
 def _levels(df: pd.DataFrame):
     """(species label, group label, row mask) for every species, every group and all trees."""
     out = []
-    for sp in _species_order(df["species"]):
-        out.append((sp, species_group(sp), (df["species"] == sp).to_numpy()))
+    for sp in species_order(df["species"]):
+        out.append((sp, _group(sp), (df["species"] == sp).to_numpy()))
     groups = [g for g in GROUP_ORDER if (df["group"] == g).any()]
     for g in groups:
         out.append(("all", g, (df["group"] == g).to_numpy()))
@@ -336,8 +424,26 @@ def _levels(df: pd.DataFrame):
     return out
 
 
-def _bootstrap_mean_ci(x: np.ndarray, rng: np.random.Generator, n_boot: int, level: float):
-    """Percentile-bootstrap CI of the mean of each column of ``x`` (n × m, NaN = missing)."""
+def bootstrap_mean_ci(x: np.ndarray, rng: np.random.Generator, n_boot: int, level: float):
+    """Percentile-bootstrap confidence interval of the mean of each column.
+
+    Parameters
+    ----------
+    x : ndarray (n, m)
+        Values; NaN is missing. Columns without NaN share the resampled rows; each other column
+        is resampled over its finite values.
+    rng : numpy.random.Generator
+        Source of the resamples (e.g. :func:`block_rng`).
+    n_boot : int
+        Number of resamples.
+    level : float
+        Confidence level, e.g. 0.95.
+
+    Returns
+    -------
+    lo, hi : ndarray (m,)
+        Interval bounds; NaN for a column with fewer than 2 values.
+    """
     n, m = x.shape
     lo = np.full(m, np.nan)
     hi = np.full(m, np.nan)
@@ -356,8 +462,21 @@ def _bootstrap_mean_ci(x: np.ndarray, rng: np.random.Generator, n_boot: int, lev
     return lo, hi
 
 
-def _block_rng(seed: int, *names) -> np.random.Generator:
-    """A generator seeded by ``seed`` and the block's names (independent of other blocks)."""
+def block_rng(seed: int, *names) -> np.random.Generator:
+    """A random generator of its own for one block of a table.
+
+    Parameters
+    ----------
+    seed : int
+        The analysis seed.
+    *names : str
+        Names of the block (e.g. species, scenario, method); seeded by their CRC-32, so a
+        block's numbers do not depend on the other blocks.
+
+    Returns
+    -------
+    numpy.random.Generator
+    """
     return np.random.default_rng([int(seed), zlib.crc32("|".join(names).encode())])
 
 
@@ -388,19 +507,19 @@ def summarize_errors(errors: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0,
         raise ConfigError(f"n_boot: must be an integer ≥ 100, got {n_boot!r}")
     if not (0 < ci < 1):
         raise ConfigError(f"ci: must lie in (0, 1), got {ci!r}")
-    df = _errors_check(errors)
+    df = check_errors(errors)
     info, metrics, arr = _wide(df)
     scen_col = info["scenario"].to_numpy()
     meth_col = info["method"].to_numpy()
     rows = []
     for sp, grp, mask in _levels(info):
-        for sc in _scenario_order(df["scenario"]):
+        for sc in scenario_order(df["scenario"]):
             for me in method_order(df["method"]):
                 sel = mask & (scen_col == sc) & (meth_col == me)
                 if not sel.any():
                     continue
                 e = arr["error"][sel]
-                lo, hi = _bootstrap_mean_ci(e, _block_rng(seed, sp, grp, sc, me), n_boot, ci)
+                lo, hi = bootstrap_mean_ci(e, block_rng(seed, sp, grp, sc, me), n_boot, ci)
                 n = np.isfinite(e).sum(axis=0)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)
@@ -504,7 +623,7 @@ def paired_tests(errors: pd.DataFrame) -> pd.DataFrame:
         (:func:`scipy.stats.wilcoxon`, two-sided, zero differences dropped). Degenerate cases
         as in the module docstring.
     """
-    df = _errors_check(errors)
+    df = check_errors(errors)
     info, metrics, arr = _wide(df, ("sim", "ref"))
     scen_col = info["scenario"].to_numpy()
     meth_col = info["method"].to_numpy()
@@ -513,7 +632,7 @@ def paired_tests(errors: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for g in groups:
         gmask = np.ones(len(info), bool) if g == "all" else grp_col == g
-        for sc in _scenario_order(df["scenario"]):
+        for sc in scenario_order(df["scenario"]):
             for me in method_order(df["method"]):
                 sel = gmask & (scen_col == sc) & (meth_col == me)
                 if not sel.any():
@@ -545,13 +664,13 @@ def multireturn_ttest(metrics: pd.DataFrame, *, metric: str = "multi_return_pct"
         mean_conifer, mean_broadleaf, diff`` (conifer − broadleaf), ``t, df`` (``n_c + n_b − 2``)
         and two-sided ``p``. Trees of group ``other`` and NaN values are left out.
     """
-    df = _prepare_metrics(metrics, source)
+    df = prepare_metrics(metrics, source)
     if metric not in df.columns:
         raise ConfigError(f"metric: {metric!r} is not a column of {source}")
-    df["group"] = df["species"].map(species_group)
+    df["group"] = df["species"].map(_group)
     rows = []
     for me in [REFERENCE] + method_order(df["method"]):
-        for sc in _scenario_order(df["scenario"]):
+        for sc in scenario_order(df["scenario"]):
             blk = df[(df["method"] == me) & (df["scenario"] == sc)]
             if blk.empty:
                 continue
@@ -612,9 +731,9 @@ def table5(errors: pd.DataFrame, voxel_counts: pd.DataFrame, sim_times: pd.DataF
         ``penetration`` (from ``mr_bias_pp``: below −5 pp "underestimated", above +5 pp
         "overestimated", else "realistic").
     """
-    err = _errors_check(errors, sources[0])
-    vc = _check_columns(voxel_counts, ("plot", "method", "n_voxels"), numeric=("n_voxels",), source=sources[1])
-    st = _check_columns(sim_times, ("plot", "method", "scenario", "seconds"), numeric=("seconds",),
+    err = check_errors(errors, sources[0])
+    vc = check_columns(voxel_counts, ("plot", "method", "n_voxels"), numeric=("n_voxels",), source=sources[1])
+    st = check_columns(sim_times, ("plot", "method", "scenario", "seconds"), numeric=("seconds",),
                         source=sources[2])
     for t in (vc, st):
         for c in ("plot", "method") + (("scenario",) if "scenario" in t else ()):
@@ -627,7 +746,7 @@ def table5(errors: pd.DataFrame, voxel_counts: pd.DataFrame, sim_times: pd.DataF
         if plots:
             common = plots if common is None else common & plots
     common = common or set()
-    scen = _scenario_order(st["scenario"])
+    scen = scenario_order(st["scenario"])
     rows = []
     for me in methods:
         e = err[err["method"] == me]
@@ -737,8 +856,8 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
         (``"agrees"``, ``"disagrees"`` or ``"not testable"``, decided from the numbers) and
         ``evidence`` (our numbers, one line per scenario/part).
     """
-    err = _errors_check(errors)
-    scen = _scenario_order(err["scenario"])
+    err = check_errors(errors)
+    scen = scenario_order(err["scenario"])
     methods = set(err["method"])
     out = []
 

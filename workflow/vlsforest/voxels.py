@@ -42,7 +42,11 @@ from typing import Callable
 
 import numpy as np
 
+from vlsforest.domain.cubes import scaled_cubes
+from vlsforest.domain.leaf_angles import g_function
+from vlsforest.domain.species import DEFAULT_GROUP, PAD_GROUPS
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.voxel_model import VoxelModel
 
 #: method kinds → builder functions ``f(inputs: ModelInputs, **params) -> VoxelModel``
 METHOD_KINDS: dict[str, Callable] = {}
@@ -60,94 +64,6 @@ def register_method(kind: str):
         return func
 
     return deco
-
-
-@dataclass
-class VoxelModel:
-    """Opaque cubes on a global lattice.
-
-    Attributes
-    ----------
-    size : float
-        Lattice cell size ``a0`` (m); cell ``ijk`` spans ``ijk·size`` to ``(ijk+1)·size``.
-    ijk : ndarray int64 (n, 3)
-        Cells, sorted lexicographically, unique.
-    owner : ndarray int64 (n,)
-        Tree id owning each cell (the label most of its points carry; ties → the smallest id).
-    half : ndarray float64 (n,) or None
-        Half side of each cube; None = full cells.
-    centre : ndarray float64 (n, 3) or None
-        Cube centres; None = cell centres.
-    pad : ndarray float64 (n,) or None
-        Plant area density used for the cube size (scaled models).
-    """
-
-    size: float
-    ijk: np.ndarray
-    owner: np.ndarray
-    half: np.ndarray | None = None
-    centre: np.ndarray | None = None
-    pad: np.ndarray | None = None
-
-    def __post_init__(self):
-        if not (np.isfinite(self.size) and self.size > 0):
-            raise ConfigError(f"voxel size must be > 0, got {self.size!r}")
-        self.ijk = np.asarray(self.ijk, dtype=np.int64).reshape(-1, 3)
-        self.owner = np.asarray(self.owner, dtype=np.int64).reshape(-1)
-        if len(self.owner) != len(self.ijk):
-            raise InputDataError("voxel model: one owner per cell required")
-
-    @property
-    def n_voxels(self) -> int:
-        """Number of cubes."""
-        return len(self.ijk)
-
-    def centres(self) -> np.ndarray:
-        """Cube centres (n, 3)."""
-        if self.centre is not None:
-            return self.centre
-        return (self.ijk + 0.5) * self.size
-
-    def sides(self) -> np.ndarray:
-        """Cube side lengths (n,)."""
-        if self.half is None:
-            return np.full(len(self.ijk), self.size)
-        return 2.0 * self.half
-
-    def subset(self, mask) -> "VoxelModel":
-        """The cubes selected by a boolean mask or index array."""
-        def sel(a):
-            return None if a is None else a[mask]
-
-        return VoxelModel(self.size, self.ijk[mask], self.owner[mask], sel(self.half), sel(self.centre),
-                          sel(self.pad))
-
-    def save(self, path) -> Path:
-        """Write as ``.npz`` (deterministic bytes)."""
-        from vlsforest.sim.output import save_npz
-
-        arrays = {"size": np.float64(self.size), "ijk": self.ijk, "owner": self.owner}
-        for name in ("half", "centre", "pad"):
-            v = getattr(self, name)
-            if v is not None:
-                arrays[name] = np.asarray(v, dtype=np.float64)
-        return save_npz(path, arrays)
-
-    @classmethod
-    def load(cls, path) -> "VoxelModel":
-        """Read a model written by :meth:`save`."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputDataError(f"{path}: no such voxel model file")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                d = {k: z[k] for k in z.files}
-        except Exception as exc:  # corrupt zip / not an npz
-            raise InputDataError(f"{path}: not a voxel model .npz ({exc})") from None
-        missing = {"size", "ijk", "owner"} - set(d)
-        if missing:
-            raise InputDataError(f"{path}: voxel model lacks {sorted(missing)}")
-        return cls(float(d["size"]), d["ijk"], d["owner"], d.get("half"), d.get("centre"), d.get("pad"))
 
 
 @dataclass
@@ -233,14 +149,7 @@ class ModelInputs:
     species_of: dict
     pad: PadGrid | None = None
     seed: int = 0
-    default_group: str = "broadleaf"
-
-
-#: leaf angle distribution and PADmax per species group (the study: planophile/5, erectophile/8)
-DEFAULT_GROUPS = {
-    "broadleaf": {"lad": "planophile", "pad_max": 5.0},
-    "conifer": {"lad": "erectophile", "pad_max": 8.0},
-}
+    default_group: str = DEFAULT_GROUP
 
 
 def cell_index(xyz, size: float) -> np.ndarray:
@@ -326,26 +235,6 @@ def fixed_voxels(xyz, size: float, owner=None, min_points: int = 1) -> VoxelMode
     return VoxelModel(float(size), cells[keep], own[keep])
 
 
-def scaled_cubes(ijk, pad, pad_max, a0: float = 0.25, alpha: float = 0.5):
-    """Cube half sides of PAD-scaled voxels: ``a/2 = a0/2 · (clip(PAD, 0, PADmax)/PADmax)^alpha``.
-
-    Returns
-    -------
-    half : ndarray (n,)
-        Half sides; 0 where PAD is 0 or NaN (no cube).
-    """
-    if not (np.isfinite(a0) and a0 > 0):
-        raise ConfigError(f"a0 must be > 0, got {a0!r}")
-    if not (np.isfinite(alpha) and alpha > 0):
-        raise ConfigError(f"alpha must be > 0, got {alpha!r}")
-    pad = np.asarray(pad, dtype=np.float64)
-    pad_max = np.broadcast_to(np.asarray(pad_max, dtype=np.float64), pad.shape)
-    if (~np.isfinite(pad_max) | (pad_max <= 0)).any():
-        raise ConfigError("pad_max must be > 0")
-    p = np.where(np.isfinite(pad), np.clip(pad, 0.0, pad_max), 0.0)
-    return 0.5 * a0 * (p / pad_max) ** alpha
-
-
 def shift_cubes(ijk, half, a0: float, mode: str = "none", seed: int = 0, cog=None) -> np.ndarray:
     """Centres of scaled cubes in their cells.
 
@@ -427,9 +316,25 @@ def _lookup(table_cells: np.ndarray, query_cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def pad_per_voxel(pad: PadGrid, owner, species_of: dict, default_group: str = "broadleaf",
+def pad_per_voxel(pad: PadGrid, owner, species_of: dict, default_group: str = DEFAULT_GROUP,
                   groups: dict | None = None, estimator: str = "transmittance"):
     """PAD of each cell of a PAD grid with the leaf angle distribution and PADmax of its owner's species group.
+
+    Parameters
+    ----------
+    pad : PadGrid
+        The cells and their transmittance (or attenuation) and mean shot angle.
+    owner : ndarray int64 (m,)
+        Tree id per cell.
+    species_of : dict int → str
+        Species group per tree id; trees not listed are in ``default_group``.
+    default_group : str
+        Group of the trees ``species_of`` does not list.
+    groups : dict, optional
+        Group → ``{"lad": …, "pad_max": …}``; default
+        :data:`vlsforest.domain.species.PAD_GROUPS`.
+    estimator : {"transmittance", "fpl_unbiased"}
+        Which column of the grid gives the attenuation.
 
     Returns
     -------
@@ -437,9 +342,7 @@ def pad_per_voxel(pad: PadGrid, owner, species_of: dict, default_group: str = "b
         PAD (m²/m³) clipped to PADmax; NaN where not sampled.
     pad_max : ndarray (m,)
     """
-    from vlsforest.pad import g_function
-
-    groups = DEFAULT_GROUPS if groups is None else groups
+    groups = PAD_GROUPS if groups is None else groups
     owner = np.asarray(owner, dtype=np.int64)
     grp = np.array([species_of.get(int(o), default_group) for o in owner], dtype=object)
     unknown = set(grp.tolist()) - set(groups)
@@ -545,17 +448,14 @@ def build_model(method: dict, inputs: ModelInputs, name: str = "method") -> Voxe
 
 
 __all__ = [
-    "DEFAULT_GROUPS",
     "METHOD_KINDS",
     "ModelInputs",
     "PadGrid",
-    "VoxelModel",
     "build_model",
     "cell_centroids",
     "cell_index",
     "fixed_voxels",
     "pad_per_voxel",
     "register_method",
-    "scaled_cubes",
     "shift_cubes",
 ]

@@ -79,14 +79,14 @@ def run(args) -> int:
         out = pd.concat(frames, ignore_index=True)
         out = out.sort_values(["plot", "tree_id", "scenario", "method"], kind="stable")
     elif args.what == "voxels":
-        from vlsforest.voxels import VoxelModel
+        from vlsforest.io.voxel_model import VoxelModel
 
         for f in args.inputs:
             plot, method = _parts(f, 2, "voxel model")
             rows.append({"plot": plot, "method": method, "n_voxels": VoxelModel.load(f).n_voxels})
         out = pd.DataFrame(rows).sort_values(["plot", "method"], kind="stable")
     elif args.what == "pad":
-        from vlsforest.pad.validate import plot_validation
+        from vlsforest.pad_validation import plot_validation
 
         frames = []
         for f in args.inputs:

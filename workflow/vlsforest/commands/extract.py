@@ -79,7 +79,7 @@ def run(args) -> int:
     from vlsforest.errors import InputDataError
     from vlsforest.extract import extract_reference, extract_simulated
     from vlsforest.io.las import read_las, write_las
-    from vlsforest.scene import object_ids
+    from vlsforest.domain.labels import object_ids
 
     targets = _targets(args.targets)
     ground = ground_table(args.targets, "target_id") if args.metrics is not None else None

@@ -94,8 +94,8 @@ def low_return_scans(scans, ratio: float = 0.5) -> list[str]:
 def run(args) -> int:
     """Execute ``vlsforest pad`` with parsed ``args``; return 0."""
     from vlsforest.io.vox import write_vox
-    from vlsforest.pad import accumulate, estimate_pad, grid_for_scans, load_tls_scans, pad_to_vox, validate_pad
-    from vlsforest.pad.validate import median_abs_bias
+    from vlsforest.pad import accumulate, estimate_pad, grid_for_scans, load_tls_scans, pad_to_vox
+    from vlsforest.pad_validation import median_abs_bias, validate_pad
 
     if not args.pad_max > 0:
         raise ConfigError(f"--pad-max: must be > 0, got {args.pad_max}")

@@ -116,7 +116,7 @@ def run(args) -> int:
         return 0
     if args.what == "crowns":
         from vlsforest.scene import crown_points
-        from vlsforest.sim.output import save_npz
+        from vlsforest.io.npz import save_npz
 
         targets = _read_csv(args.targets, ("tree_id",), "targets table")
         seg = read_las(args.segment / "segmented.laz", require=("tree_id",))
@@ -130,7 +130,7 @@ def run(args) -> int:
         return 0
     if args.what == "build":
         from vlsforest.scene import assemble_scene, export_helios
-        from vlsforest.voxels import VoxelModel
+        from vlsforest.io.voxel_model import VoxelModel
 
         targets = _read_csv(args.targets, ("tree_id",), "targets table")
         site = _json(args.site, "site description")

@@ -16,6 +16,8 @@ from pathlib import Path
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``voxels`` sub-command."""
+    from vlsforest.domain.species import DEFAULT_GROUP
+
     p = subparsers.add_parser("voxels", help="voxel model of one method (fixed / PAD-scaled cubes)",
                               description=__doc__.split("\n\n")[1])
     p.add_argument("crowns", type=Path, help="crowns.npz (xyz, owner)")
@@ -26,7 +28,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--targets", type=Path, default=None, help="targets.csv (species per target tree)")
     p.add_argument("--groups-json", default=None,
                    help='species groups, e.g. {"broadleaf": {"lad": "planophile", "pad_max": 5}, …}')
-    p.add_argument("--default-group", default="broadleaf", help="species group of non-target trees")
+    p.add_argument("--default-group", default=DEFAULT_GROUP,
+                   help=f"species group of non-target trees (default {DEFAULT_GROUP})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--vox", type=Path, default=None, help="also write the model as AMAPVox .vox")
     p.add_argument("-o", "--output", required=True, type=Path, help="voxels.npz")
@@ -74,8 +77,8 @@ def run(args) -> int:
     model.save(args.output)
     if args.vox is not None:
         from vlsforest.io.vox import write_vox
-        from vlsforest.scene import _model_vox
+        from vlsforest.io.voxel_model import model_vox
 
-        write_vox(args.vox, _model_vox(model, None if model.half is None else 1.0))
+        write_vox(args.vox, model_vox(model, None if model.half is None else 1.0))
     print(f"voxels {args.method}: {model.n_voxels} cubes, side {model.sides().min():.4f}–{model.sides().max():.4f} m")
     return 0

@@ -349,9 +349,9 @@ class _PlotSim:
         self.n_redetected = 0
 
     def _features(self, arrays):
-        from vlsforest.extract import _ColumnIndex
+        from vlsforest.extract import ColumnIndex
 
-        columns = _ColumnIndex(arrays["xyz"][:, :2])  # for the labels and the features
+        columns = ColumnIndex(arrays["xyz"][:, :2])  # for the labels and the features
         lab = self._label(arrays, columns)
         f = tree_features(arrays, lab, self.trees, columns)
         f.index = pd.MultiIndex.from_product([[self.p.name], f.index], names=["plot", "tree_id"])

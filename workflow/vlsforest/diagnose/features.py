@@ -154,10 +154,10 @@ def tree_labeller(tree_points: dict, radius: float, workers: int = 1):
     built once; the returned callable takes the ``arrays`` of a cloud (and optionally a
     column index of its x, y, as :func:`tree_features` takes it) and gives its labels.
     ``workers``: threads of the nearest-point queries."""
-    from vlsforest.extract import _TreeLabeller
+    from vlsforest.extract import TreeLabeller
     from vlsforest.io.las import PointCloud
 
-    lab = _TreeLabeller(tree_points, radius, workers)
+    lab = TreeLabeller(tree_points, radius, workers)
 
     def label(arrays: dict, columns=None) -> np.ndarray:
         return lab(PointCloud(arrays["xyz"], {"classification": arrays["classification"]}), columns=columns)
@@ -251,7 +251,7 @@ def _ground_stats(xyz, line, cell=1.0):
 
 def _within(xy, columns, cx, cy, r):
     """Indices (ascending) of the points of ``xy`` within distance ``r`` of (cx, cy); only the
-    columns of ``columns`` (a :class:`~vlsforest.extract._ColumnIndex` of ``xy``) around the
+    columns of ``columns`` (a :class:`~vlsforest.extract.ColumnIndex` of ``xy``) around the
     disc are tested."""
     pad = r + 1e-6 + 1e-12 * max(abs(cx), abs(cy))  # the columns only pre-select: the disc test decides
     near = columns.box(cx - pad, cy - pad, cx + pad, cy + pad)
@@ -271,7 +271,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     trees : pandas.DataFrame
         One row per tree with ``tree_id``, stem base ``x``, ``y``, ``z`` and ``crown_radius``
         (m; the column under the crown for the ground observables).
-    columns : vlsforest.extract._ColumnIndex, optional
+    columns : vlsforest.extract.ColumnIndex, optional
         A column index of the points' x, y (built here if not given; labelling can share it).
 
     Returns
@@ -279,7 +279,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     pandas.DataFrame
         Index ``tree_id``, columns :data:`FEATURES`; NaN where a tree has too few points.
     """
-    from vlsforest.extract import _ColumnIndex, _stable_argsort
+    from vlsforest.extract import ColumnIndex, stable_argsort
     from vlsforest.metrics import tree_metrics
 
     xyz = arrays["xyz"]
@@ -287,7 +287,7 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     if len(labels) != n:
         raise InputDataError(f"{len(labels)} labels for {n} points")
     rows = []
-    order = _stable_argsort(labels)
+    order = stable_argsort(labels)
     bounds = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="left")
     ends = np.searchsorted(labels[order], np.asarray(trees["tree_id"], np.int64), side="right")
     gsel = arrays["classification"] == 2
@@ -296,8 +296,8 @@ def tree_features(arrays: dict, labels: np.ndarray, trees: pd.DataFrame, columns
     gsingle = np.asarray(arrays["number_of_returns"])[gsel] == 1
     gnadir = np.abs(np.asarray(arrays["scan_angle"], np.float64)[gsel]) < ANGLE_SPLIT_DEG
     allxy = xyz[:, :2]
-    columns = _ColumnIndex(allxy) if columns is None else columns
-    gcolumns = _ColumnIndex(gxyz[:, :2])
+    columns = ColumnIndex(allxy) if columns is None else columns
+    gcolumns = ColumnIndex(gxyz[:, :2])
     for (_, t), b, e in zip(trees.iterrows(), bounds, ends):
         idx = order[b:e]
         row = {"tree_id": int(t.tree_id)}

@@ -264,7 +264,7 @@ def _obj_vertices(path, raw, b, line_start, line_end, v_lines) -> np.ndarray:
 
 
 def _obj_faces(path, raw, b, line_start, line_end, f_lines):
-    from vlsforest.io.vox import _token_counts  # shared vectorised helper
+    from vlsforest.io._text import token_counts
 
     block = np.frombuffer(_obj_block(b, line_start, line_end, f_lines), dtype=np.uint8)
     # keep only the vertex index of a/b, a/b/c and a//c: drop every byte from a '/' to the token end
@@ -279,7 +279,7 @@ def _obj_faces(path, raw, b, line_start, line_end, f_lines):
             return _obj_face_error(path, raw, f_lines)
         block = block[last_slash <= last_ws]
     bblock = block.tobytes()
-    counts = _token_counts(bblock)[: len(f_lines)]
+    counts = token_counts(bblock)[: len(f_lines)]
     if np.any(counts < 3):
         n = int(f_lines[int(np.argmax(counts < 3))])
         line = raw[line_start[n] : line_end[n]].decode("utf-8", errors="replace")
@@ -584,10 +584,10 @@ def _ply_ascii_element(path, rows, el: _Element) -> dict:
 
 def _ply_ascii_lists(rows):
     """Vectorised parse of ASCII rows ``n i1 .. in``; None when anything looks off."""
-    from vlsforest.io.vox import _token_counts
+    from vlsforest.io._text import token_counts
 
     block = "\n".join(r for _, r in rows).encode("ascii", errors="replace")
-    counts = _token_counts(block)[: len(rows)]
+    counts = token_counts(block)[: len(rows)]
     if len(counts) != len(rows) or counts.min() < 1:
         return None
     width = int(counts.max())
@@ -631,15 +631,15 @@ def write_mesh(path, mesh: TriangleMesh) -> None:
         raise InputDataError(f"{path}: cannot write a mesh with NaN or infinite vertex coordinates")
     path.parent.mkdir(parents=True, exist_ok=True)
     if ext == ".obj":
-        from vlsforest.io.vox import _column_text, _join_rows
+        from vlsforest.io._text import column_text, join_rows
 
         nv, nf = mesh.n_vertices, mesh.n_faces
         head = f"# vlsforest triangle mesh: {nv} vertices, {nf} faces\n".encode()
         vcols = [np.full(nv, b"v", dtype="S1")] + [_float_text(mesh.vertices[:, n]) for n in range(3)]
         fcols = [np.full(nf, b"f", dtype="S1")] + [
-            _column_text(mesh.faces[:, n].astype(np.int64) + 1) for n in range(3)
+            column_text(mesh.faces[:, n].astype(np.int64) + 1) for n in range(3)
         ]
-        body = (_join_rows(vcols) if nv else b"") + (_join_rows(fcols) if nf else b"")
+        body = (join_rows(vcols) if nv else b"") + (join_rows(fcols) if nf else b"")
         path.write_bytes(head + body)
     else:
         head = (

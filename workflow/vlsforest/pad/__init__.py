@@ -2,10 +2,10 @@
 
 * :mod:`~vlsforest.pad.traverse` — shots of a TLS folder (:func:`load_tls_scans`, empty shots
   rebuilt from the scan pattern), the voxel traversal and its accumulators (:func:`accumulate`);
-* :mod:`~vlsforest.pad.gfunc` — leaf angle distributions and G(θ) (:func:`g_function`);
+* :mod:`vlsforest.domain.leaf_angles` — leaf angle distributions and G(θ) (:func:`g_function`,
+  re-exported here);
 * :mod:`~vlsforest.pad.estimate` — the transmittance and bias-corrected FPL estimators
   (:func:`estimate_pad`) and the ``.vox`` export (:func:`pad_to_vox`);
-* :mod:`~vlsforest.pad.validate` — comparison with the virtual truth (:func:`validate_pad`).
 
 Typical use::
 
@@ -16,6 +16,7 @@ Typical use::
     write_vox("P1.vox", pad_to_vox(acc, pad, flags, 5.0))
 """
 
+from vlsforest.domain.leaf_angles import LAD_NAMES, g_function, leaf_inclination_pdf
 from vlsforest.pad.estimate import (
     ESTIMATORS,
     FLAG_CLIPPED,
@@ -26,14 +27,11 @@ from vlsforest.pad.estimate import (
     pad_to_vox,
     transmittance,
 )
-from vlsforest.pad.gfunc import LAD_NAMES, g_function, leaf_inclination_pdf
 from vlsforest.pad.traverse import Accumulators, TlsScan, accumulate, grid_for_scans, load_tls_scans
-from vlsforest.pad.validate import TABLE_COLUMNS, validate_pad
 
 __all__ = [
     "TlsScan", "Accumulators", "load_tls_scans", "grid_for_scans", "accumulate",
     "LAD_NAMES", "g_function", "leaf_inclination_pdf",
     "ESTIMATORS", "FLAG_UNSAMPLED", "FLAG_FEW_PULSES", "FLAG_SATURATED", "FLAG_CLIPPED",
     "estimate_pad", "transmittance", "pad_to_vox",
-    "TABLE_COLUMNS", "validate_pad",
 ]

@@ -25,8 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
+from vlsforest.domain.leaf_angles import LAD_NAMES, check_lad, g_function
 from vlsforest.errors import ConfigError
-from vlsforest.pad.gfunc import LAD_NAMES, _check_lad, g_function
 from vlsforest.pad.traverse import Accumulators
 
 ESTIMATORS = ("transmittance", "fpl_unbiased")
@@ -142,7 +142,7 @@ def _per_voxel(value, n, name, kind):
     """A scalar or an array of n values (or of the grid shape, flattened)."""
     if kind == "lad":
         if isinstance(value, str):
-            return _check_lad(value, name), None
+            return check_lad(value, name), None
         arr = np.asarray(value, dtype=object).reshape(-1)
     else:
         if np.ndim(value) == 0:
@@ -182,7 +182,7 @@ def estimate_pad(acc: Accumulators, lad="planophile", pad_max=5.0, estimator: st
     acc : Accumulators
         From :func:`vlsforest.pad.accumulate`.
     lad : str or array of str
-        Leaf angle distribution (:data:`~vlsforest.pad.gfunc.LAD_NAMES`), one for all voxels or
+        Leaf angle distribution (:data:`~vlsforest.domain.leaf_angles.LAD_NAMES`), one for all voxels or
         one per voxel (grid shape, or length n with ``ijk``).
     pad_max : float or array
         PADmax (m²/m³), one value or one per voxel like ``lad``.

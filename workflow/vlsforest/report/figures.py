@@ -37,19 +37,20 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from vlsforest.domain.species import species_group  # noqa: E402
 from vlsforest.errors import ConfigError, InputDataError  # noqa: E402
 from vlsforest.stats import (  # noqa: E402
     GROUP_ORDER,
+    OTHER_GROUP,
     REFERENCE,
-    _block_rng,
-    _bootstrap_mean_ci,
-    _check_columns,
-    _errors_check,
-    _prepare_metrics,
-    _scenario_order,
-    _species_order,
+    block_rng,
+    bootstrap_mean_ci,
+    check_columns,
+    check_errors,
     method_order,
-    species_group,
+    prepare_metrics,
+    scenario_order,
+    species_order,
 )
 
 __all__ = [
@@ -214,7 +215,7 @@ def _violins(ax, data, value, order, hue, hue_order, palette, ylabel, title):
 
 
 def _prep_errors(errors):
-    return _errors_check(errors, "errors")
+    return check_errors(errors, "errors")
 
 
 # --------------------------------------------------------------------------- figures
@@ -227,9 +228,9 @@ def fig07_percentile_curves(metrics: pd.DataFrame, out, *, n_boot: int = 1000, s
     is the percentile-bootstrap 95 % CI of the mean over the species' trees (``n_boot``
     resamples, seeded by ``seed`` and the panel and method names).
     """
-    df = _prepare_metrics(metrics, "tree metrics")
-    scen = _scenario_order(df["scenario"])
-    species = _species_order(df["species"])
+    df = prepare_metrics(metrics, "tree metrics")
+    scen = scenario_order(df["scenario"])
+    species = species_order(df["species"])
     methods = [REFERENCE] + method_order(df["method"])
     pal = method_palette(df["method"])
     with _style():
@@ -245,7 +246,7 @@ def fig07_percentile_curves(metrics: pd.DataFrame, out, *, n_boot: int = 1000, s
                     if len(x) == 0:
                         continue
                     mean = x.mean(axis=0)
-                    lo, hi = _bootstrap_mean_ci(x, _block_rng(seed, "fig07", sc, sp, me), n_boot, 0.95)
+                    lo, hi = bootstrap_mean_ci(x, block_rng(seed, "fig07", sc, sp, me), n_boot, 0.95)
                     ref = me == REFERENCE
                     ax.plot(mean, _PCT_RANKS, color=pal[me], lw=2.0 if ref else 1.2,
                             ls="--" if ref else "-", label=_short(me), zorder=3 if ref else 2)
@@ -279,7 +280,7 @@ def fig08_density_deviation(errors: pd.DataFrame, out) -> Path:
     err = _prep_errors(errors)
     e = err[err["metric"].isin(_DENS_COLS)].copy()
     e = e[np.isfinite(e["error"].to_numpy(float))]
-    scen = _scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"])
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
     methods = method_order(err["method"])
     pal = method_palette(err["method"])
@@ -320,7 +321,7 @@ def fig08_density_deviation(errors: pd.DataFrame, out) -> Path:
 def fig09_hsd_hmin(errors: pd.DataFrame, out) -> Path:
     """Relative Hsd error (%) and absolute Hmin error (m) per method; violins split by group."""
     err = _prep_errors(errors)
-    scen = _scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"])
     methods = method_order(err["method"])
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
     panels = (("hsd", "rel_error", "Hsd relative error (%)"), ("hmin", "error", "Hmin error (m)"))
@@ -336,9 +337,9 @@ def fig09_hsd_hmin(errors: pd.DataFrame, out) -> Path:
 
 def fig10_multireturn(metrics: pd.DataFrame, out) -> Path:
     """Share of pulses with multiple returns per method and group (bars = mean, dots = trees)."""
-    df = _prepare_metrics(metrics, "tree metrics")
-    df["group"] = df["species"].map(species_group)
-    scen = _scenario_order(df["scenario"])
+    df = prepare_metrics(metrics, "tree metrics")
+    df["group"] = df["species"].map(lambda sp: species_group(sp, default=OTHER_GROUP))
+    scen = scenario_order(df["scenario"])
     order = [REFERENCE] + method_order(df["method"])
     groups = [g for g in GROUP_ORDER if (df["group"] == g).any()]
     with _style():
@@ -368,7 +369,7 @@ def fig10_multireturn(metrics: pd.DataFrame, out) -> Path:
 def fig11_cbh_cpa(errors: pd.DataFrame, out) -> Path:
     """CBH error (m) and CPA error (m²) per method; violins split by group."""
     err = _prep_errors(errors)
-    scen = _scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"])
     methods = method_order(err["method"])
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
     panels = (("cbh", "CBH error (m)"), ("cpa", "CPA error (m²)"))
@@ -385,9 +386,9 @@ def fig11_cbh_cpa(errors: pd.DataFrame, out) -> Path:
 def fig12_height(errors: pd.DataFrame, out) -> Path:
     """Tree height error (m) per method, one violin per species, one panel per scenario."""
     err = _prep_errors(errors)
-    scen = _scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"])
     methods = method_order(err["method"])
-    species = _species_order(err["species"])
+    species = species_order(err["species"])
     pal = dict(zip(species, sns.color_palette("Set2", len(species))))
     with _style():
         fig, axes = _new_figure(len(scen), 1, panel=(8.0, 3.4))
@@ -472,13 +473,13 @@ def fig_voxels_vs_error(errors: pd.DataFrame, voxel_counts: pd.DataFrame, out,
     one panel per metric.
     """
     err = _prep_errors(errors)
-    vc = _check_columns(voxel_counts, ("plot", "method", "n_voxels"), numeric=("n_voxels",), source="voxel counts")
+    vc = check_columns(voxel_counts, ("plot", "method", "n_voxels"), numeric=("n_voxels",), source="voxel counts")
     vc = vc.assign(plot=vc["plot"].astype(str), method=vc["method"].astype(str))
     vc = vc[vc["method"] != REFERENCE].groupby(["plot", "method"], as_index=False)["n_voxels"].sum()
     units = {"hsd": "m", "cbh": "m", "cpa": "m²", "multi_return_pct": "pp", "height": "m", "hmin": "m"}
     methods = method_order(err["method"])
     pal = method_palette(err["method"])
-    scen = _scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"])
     markers = dict(zip(scen, ["o", "s", "^", "D", "v", "P"] * (len(scen) // 6 + 1)))
     with _style():
         fig, axes = _new_figure(1, len(metrics), panel=(3.6, 3.4))
@@ -521,9 +522,9 @@ def side_view_selection(metrics: pd.DataFrame, results_dir, *, methods=("scaled"
     """
     from vlsforest.io.las import read_las
 
-    df = _prepare_metrics(metrics, "tree metrics")
+    df = prepare_metrics(metrics, "tree metrics")
     if scenario not in set(df["scenario"]):
-        scenario = _scenario_order(df["scenario"])[-1]
+        scenario = scenario_order(df["scenario"])[-1]
     ref = df[(df["method"] == REFERENCE) & (df["scenario"] == scenario)]
     ref = ref[np.isfinite(ref["n_points"].to_numpy(float)) & (ref["n_points"] > 0)]
     sims = method_order(df["method"])

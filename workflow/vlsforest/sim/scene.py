@@ -10,7 +10,7 @@ SCENE.yaml::
       - {id: 4, type: vox, path: crown.vox, mode: scaled, pad_max: 8, alpha: 0.5,
          random_shift: true, seed: 1}
       - {id: 5, type: voxels, path: centres.csv, size: 0.25}               # x,y,z[,size]
-      - {id: 7, type: voxels, path: crown.npz}                             # vlsforest.voxels.VoxelModel
+      - {id: 7, type: voxels, path: crown.npz}                             # vlsforest.io.voxel_model.VoxelModel
       - {id: 6, type: voxels, points: tls.laz, size: 0.02, min_points: 1}  # voxelise points
 
 Every part has an integer object ``id`` (written per return as ``object_id``) and a material:
@@ -46,7 +46,9 @@ import numba
 import numpy as np
 import yaml
 
+from vlsforest.domain.cubes import CUBE_CORNERS, CUBE_FACES, cube_triangles, scaled_cubes
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
+from vlsforest.io.voxel_model import VoxelModel
 from vlsforest.sim import _embree
 from vlsforest.sim._voxelgrid import VoxelGrid
 from vlsforest.sim.waveform import hit_cos32
@@ -449,7 +451,7 @@ class Scene:
             # Embree commits the BVH lazily: force it with one ray
             self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
-    def trace(self, origins, dirs, with_labels: bool = False):
+    def trace(self, origins, dirs, with_labels: bool = False, serial: bool | None = None):
         """Nearest hit of each ray.
 
         Parameters
@@ -458,6 +460,8 @@ class Scene:
             Ray origins (world coordinates, float64) and unit directions.
         with_labels : bool
             Also return the face label of each hit (0 where none).
+        serial : bool, optional
+            Trace the voxel grids without numba threads (see :meth:`VoxelGrid.trace`).
 
         Returns
         -------
@@ -496,7 +500,7 @@ class Scene:
                 cos_inc[idx] = np.abs(dz[idx])
                 if with_labels:
                     label[idx] = 0
-        self._trace_grids(o, d, t, part, cos_inc, label)
+        self._trace_grids(o, d, t, part, cos_inc, label, serial)
         if with_labels:
             return t, part, cos_inc, label
         return t, part, cos_inc
@@ -522,12 +526,12 @@ class Scene:
         self.prepare()
         return self._shift.copy()
 
-    def trace_local(self, o32, d32, with_labels: bool = False, world=None):
+    def trace_local(self, o32, d32, with_labels: bool = False, world=None, serial: bool | None = None):
         """:meth:`trace` for float32 rays already in the Embree frame (world − :attr:`shift`).
 
         Saves the conversions when the caller builds its rays in float32 (the simulator does).
         ``world`` optionally passes the same rays in float64 world coordinates for the voxel
-        grids (otherwise rebuilt from the float32 ones).
+        grids (otherwise rebuilt from the float32 ones); ``serial`` as in :meth:`trace`.
         """
         self.prepare()
         res = self._embree.run(o32, d32, output=1)
@@ -543,7 +547,7 @@ class Scene:
             _hit_labels(gid, res["primID"], offsets, flat, label)
         if self.grids:
             o, d = world if world is not None else (o32.astype(np.float64) + self._shift, d32.astype(np.float64))
-            self._trace_grids(o, d, t, part, cos_inc, label)
+            self._trace_grids(o, d, t, part, cos_inc, label, serial)
         if with_labels:
             return t, part, cos_inc, label
         return t, part, cos_inc
@@ -568,10 +572,10 @@ class Scene:
         res = self._embree.run(o32, d32, output=1)
         return res["tfar"], res["geomID"], res["Ng"], self._embree_parts
 
-    def _trace_grids(self, o, d, t, part, cos_inc, label):
+    def _trace_grids(self, o, d, t, part, cos_inc, label, serial=None):
         """Update nearest hits (in place) with the voxel grids."""
         for g in self.grids:
-            tg, pg, face, _ = g.trace(o, d, t.copy())
+            tg, pg, face, _ = g.trace(o, d, t.copy(), serial=serial)
             better = (pg >= 0) & (tg < t)
             if better.any():
                 t[better] = tg[better]
@@ -714,8 +718,6 @@ def _add_part_from_dict(scene: Scene, p, base: Path, where: str, voxel_transform
             col = p.get("pad_column", "PadBVTotal")
             if col not in vox.columns:
                 raise InputDataError(f"{path_of('path')}: no column {col!r} for scaled voxels")
-            from vlsforest.voxels import scaled_cubes
-
             half_all = scaled_cubes(ijk, vox.column(col), pad_max, vox.res, alpha)
             keep = half_all > 0
             ijk, half = ijk[keep], half_all[keep]
@@ -730,8 +732,6 @@ def _add_part_from_dict(scene: Scene, p, base: Path, where: str, voxel_transform
         if ("path" in p) == ("points" in p):
             raise ConfigError(f"{where}: give exactly one of 'path' (voxel centres CSV or model .npz) or 'points'")
         if "path" in p and str(p["path"]).lower().endswith(".npz"):
-            from vlsforest.voxels import VoxelModel
-
             model = VoxelModel.load(path_of("path"))
             if model.n_voxels == 0:
                 raise InputDataError(f"{path_of('path')}: voxel model holds no voxels")
@@ -803,10 +803,8 @@ def _read_centres(path: Path):
     return xyz, sizes
 
 
-_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-# 12 outward-facing triangles over the 8 corners above (index = 4·x + 2·y + z, 0 for −, 1 for +)
-_CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                        [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
+# the unit cube's corners and triangles under the names tests of the Embree backend read
+_CUBE_CORNERS, _CUBE_FACES = CUBE_CORNERS, CUBE_FACES
 
 
 def _n_cubes(v: _VoxelSet) -> int:
@@ -830,8 +828,7 @@ def _cube_triangle_chunks(v: _VoxelSet, shift, chunk: int = 1 << 16):
         else:
             centre = v.centre[r]
         half = np.full(len(centre), 0.5 * v.size) if v.half is None else v.half[r]
-        verts = (centre[:, None, :] + half[:, None, None] * _CUBE_CORNERS[None]).reshape(-1, 3)
-        faces = (_CUBE_FACES[None] + 8 * np.arange(a, a + len(r))[:, None, None]).reshape(-1, 3)
+        verts, faces = cube_triangles(centre, half, first=a)
         yield (verts - shift).astype(np.float32), faces.astype(np.int32)
 
 

@@ -31,7 +31,6 @@ from vlsforest.synth.species import (
     SpeciesParams,
     TreeParams,
     get_species,
-    leaf_angle_pdf,
     sample_tree_params,
     target_tree_params,
 )
@@ -45,7 +44,7 @@ from vlsforest.synth.trees import (
 )
 
 __all__ = [
-    "SPECIES", "TABLE1", "SpeciesParams", "TreeParams", "get_species", "leaf_angle_pdf",
+    "SPECIES", "TABLE1", "SpeciesParams", "TreeParams", "get_species",
     "sample_tree_params", "target_tree_params", "TreeGeometry", "TriMesh", "generate_tree",
     "ORGAN_STEM", "ORGAN_BRANCH", "ORGAN_FOLIAGE", "PlantAreaGrid", "true_plant_area",
     "GroundSurface", "DEFAULT_FOREST", "QUICK_FOREST", "PlotLayout", "TreeSpec",

@@ -15,8 +15,8 @@ Three pieces:
   Weiser et al. (2021).
 
 Leaf angle distributions are de Wit's (planophile, erectophile, plagiophile, extremophile,
-uniform) plus spherical; :func:`leaf_angle_pdf` gives the density of the leaf *normal*
-inclination θL ∈ [0, π/2] and :func:`sample_leaf_inclination` draws from it by inverse CDF.
+uniform) plus spherical (:mod:`vlsforest.domain.leaf_angles` gives the density of the leaf
+*normal* inclination θL ∈ [0, π/2]); :func:`sample_leaf_inclination` draws from it by inverse CDF.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlsforest.domain.leaf_angles import check_lad, leaf_inclination_pdf
 from vlsforest.errors import ConfigError, InputDataError
 
 _DATA = Path(__file__).resolve().parent / "data" / "bretten_species.json"
@@ -37,36 +38,10 @@ _DATA = Path(__file__).resolve().parent / "data" / "bretten_species.json"
 # leaf angle distributions
 
 
-def leaf_angle_pdf(name: str, theta: np.ndarray) -> np.ndarray:
-    """Density of the leaf-normal inclination θL (radians, 0 = horizontal leaf) on [0, π/2].
-
-    Parameters
-    ----------
-    name : {"planophile", "erectophile", "plagiophile", "extremophile", "uniform", "spherical"}
-    theta : array_like
-        Inclinations in radians.
-    """
-    t = np.asarray(theta, dtype=float)
-    c = 2.0 / np.pi
-    if name == "planophile":
-        return c * (1.0 + np.cos(2 * t))
-    if name == "erectophile":
-        return c * (1.0 - np.cos(2 * t))
-    if name == "plagiophile":
-        return c * (1.0 - np.cos(4 * t))
-    if name == "extremophile":
-        return c * (1.0 + np.cos(4 * t))
-    if name == "uniform":
-        return np.full_like(t, c)
-    if name == "spherical":
-        return np.sin(t)
-    raise ConfigError(f"leaf_angle_distribution: unknown distribution {name!r}")
-
-
 @lru_cache(maxsize=None)
 def _inclination_table(name: str) -> tuple[np.ndarray, np.ndarray]:
     th = np.linspace(0.0, np.pi / 2, 20001)
-    pdf = leaf_angle_pdf(name, th)
+    pdf = leaf_inclination_pdf(check_lad(name, "leaf_angle_distribution"), th)
     cdf = np.concatenate([[0.0], np.cumsum(0.5 * (pdf[1:] + pdf[:-1]) * np.diff(th))])
     cdf /= cdf[-1]
     return cdf, th
@@ -116,7 +91,7 @@ class SpeciesParams:
         Second-order branches per metre of parent, their angle to the parent, and their maximum
         length relative to the parent's length.
     leaf_angle_distribution : str
-        Distribution of the foliage element normals (see :func:`leaf_angle_pdf`).
+        Distribution of the foliage element normals (see :func:`vlsforest.domain.leaf_angles.leaf_inclination_pdf`).
     leaf_element_area : float
         Default one-sided area (m²) of one foliage element (a leaf cluster for broadleaf, a needle
         shoot for conifers); enlarged automatically to stay within a tree's triangle budget.
@@ -482,7 +457,7 @@ def target_tree_params(rng: np.random.Generator, max_triangles: int = 150_000,
 
 
 __all__ = [
-    "SpeciesParams", "SPECIES", "get_species", "Neighbour", "TreeParams", "leaf_angle_pdf",
+    "SpeciesParams", "SPECIES", "get_species", "Neighbour", "TreeParams",
     "sample_leaf_inclination", "load_bretten_summary", "sample_tree_params",
     "target_tree_params", "TABLE1", "TARGET_SPECIES",
 ]

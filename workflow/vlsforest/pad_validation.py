@@ -1,5 +1,8 @@
 """Validation of PAD estimates against the virtual truth (true plant area per voxel).
 
+An analysis of two stages' outputs: the PAD estimates (:mod:`vlsforest.pad`) and the recorded
+virtual forest (:mod:`vlsforest.synth`).
+
 The truth of a recorded virtual forest folder (``truth/synth_settings.yaml`` + seed) is rebuilt
 deterministically: the plot layout with :func:`vlsforest.synth.forest_from_config`, the tree
 meshes with :func:`vlsforest.synth.generate_plot_trees`, and the exact one-sided plant area per
@@ -32,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from vlsforest.domain.species import PAD_GROUPS, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.pad.estimate import estimate_pad
 from vlsforest.pad.traverse import Accumulators
@@ -40,8 +44,6 @@ from vlsforest.pad.traverse import Accumulators
 TABLE_COLUMNS = ["plot", "species", "estimator", "height_band", "n_voxels", "bias_pct", "rmse",
                  "bias_pct_capped", "mean_true_pad", "mean_est_pad", "frac_undersampled"]
 HEIGHT_BANDS = ("below_crown", "lower", "middle", "upper")
-#: per species group: (leaf angle distribution, PADmax)
-GROUP_SETTINGS = {"broadleaf": ("planophile", 5.0), "conifer": ("erectophile", 8.0)}
 
 
 def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
@@ -137,12 +139,6 @@ def truth_on_grid(geometries: dict, origin, cell_size: float, shape):
     return ijk.astype(np.int64), total, owner
 
 
-def _species_group(species: str) -> str:
-    from vlsforest.synth.species import get_species
-
-    return get_species(species).group
-
-
 def voxel_table(acc: Accumulators, truth_ijk, truth_area, owner, trees: pd.DataFrame,
                 estimators=("transmittance", "fpl_unbiased"), min_pulses: int = 5,
                 group_settings: dict | None = None, targets_only: bool = True) -> pd.DataFrame:
@@ -155,7 +151,7 @@ def voxel_table(acc: Accumulators, truth_ijk, truth_area, owner, trees: pd.DataF
     """
     from scipy.spatial import cKDTree
 
-    gs = dict(GROUP_SETTINGS if group_settings is None else group_settings)
+    gs = PAD_GROUPS if group_settings is None else group_settings
     shape = np.asarray(acc.shape)
     echo_ijk = np.argwhere(acc.nb_echos > 0)
     k_t = (truth_ijk[:, 0] * shape[1] + truth_ijk[:, 1]) * shape[2] + truth_ijk[:, 2]
@@ -181,12 +177,12 @@ def voxel_table(acc: Accumulators, truth_ijk, truth_area, owner, trees: pd.DataF
         keep = tt.loc[own, "target"].to_numpy().astype(bool)
         ijk, area, own = ijk[keep], area[keep], own[keep]
     species = tt.loc[own, "species"].to_numpy()
-    groups = np.array([_species_group(s) for s in species], dtype=object)
+    groups = np.array([species_group(s) for s in species], dtype=object)
     unknown = sorted(set(groups) - set(gs))
     if unknown:
         raise ConfigError(f"group_settings: no LAD/PADmax for species group(s) {unknown}")
-    lad = np.array([gs[g][0] for g in groups], dtype=object)
-    pmax = np.array([gs[g][1] for g in groups], dtype=float)
+    lad = np.array([gs[g]["lad"] for g in groups], dtype=object)
+    pmax = np.array([gs[g]["pad_max"] for g in groups], dtype=float)
     zc = acc.origin[2] + (ijk[:, 2] + 0.5) * acc.cell_size
     zg, h, cbh = (tt.loc[own, c].to_numpy(float) for c in ("z_ground", "height", "cbh"))
     rel = (zc - zg - cbh) / np.maximum(h - cbh, 1e-6)
@@ -325,7 +321,8 @@ def validate_pad(acc: Accumulators, forest_dir, plot: str, estimators=("transmit
     table_path, figure_path : path, optional
         Where to write the CSV table and the PNG figure.
     group_settings : dict, optional
-        Species group → (LAD, PADmax); default :data:`GROUP_SETTINGS`.
+        Species group → ``{"lad": …, "pad_max": …}``; default
+        :data:`vlsforest.domain.species.PAD_GROUPS`.
     targets_only : bool
         Validate the voxels of the target trees only (the trees the study models; default).
 
@@ -358,5 +355,5 @@ def median_abs_bias(table: pd.DataFrame, column: str = "bias_pct") -> pd.Series:
     return t.groupby("estimator")[column].apply(lambda b: float(np.median(np.abs(b))))
 
 
-__all__ = ["TABLE_COLUMNS", "HEIGHT_BANDS", "GROUP_SETTINGS", "load_truth_geometries", "truth_on_grid",
+__all__ = ["TABLE_COLUMNS", "HEIGHT_BANDS", "load_truth_geometries", "truth_on_grid",
            "voxel_table", "summarize", "plot_validation", "validate_pad", "median_abs_bias"]

@@ -34,7 +34,7 @@ import numpy as np
 
 from vlsforest.errors import ConfigError
 
-#: the supported leaf angle distributions
+#: the supported leaf angle distributions (de Wit's five and spherical)
 LAD_NAMES = ("planophile", "erectophile", "plagiophile", "extremophile", "uniform", "spherical")
 
 #: LUT step (degrees)
@@ -59,7 +59,7 @@ def leaf_inclination_pdf(lad: str, theta_l) -> np.ndarray:
     """
     t = np.asarray(theta_l, dtype=float)
     c = 2.0 / np.pi
-    name = _check_lad(lad)
+    name = check_lad(lad)
     if name == "planophile":
         return c * (1.0 + np.cos(2.0 * t))
     if name == "erectophile":
@@ -73,7 +73,26 @@ def leaf_inclination_pdf(lad: str, theta_l) -> np.ndarray:
     return np.sin(t)  # spherical
 
 
-def _check_lad(lad, key: str = "lad") -> str:
+def check_lad(lad, key: str = "lad") -> str:
+    """Normalised name of a leaf angle distribution.
+
+    Parameters
+    ----------
+    lad : str
+        One of :data:`LAD_NAMES` (any case, surrounding blanks ignored).
+    key : str
+        Name of the setting, for the error message.
+
+    Returns
+    -------
+    str
+        The name in lower case.
+
+    Raises
+    ------
+    ConfigError
+        For a name not in :data:`LAD_NAMES`.
+    """
     name = str(lad).strip().lower()
     if name not in LAD_NAMES:
         raise ConfigError(f"{key}: unknown leaf angle distribution {lad!r}; known: {', '.join(LAD_NAMES)}")
@@ -150,7 +169,7 @@ def g_function(theta_deg, lad: str = "planophile") -> np.ndarray:
     ConfigError
         Unknown ``lad`` or an angle outside [0, 180].
     """
-    name = _check_lad(lad)
+    name = check_lad(lad)
     t = np.asarray(theta_deg, dtype=float)
     finite = np.isfinite(t)
     if np.any((t[finite] < -1e-9) | (t[finite] > 180.0 + 1e-9)):
@@ -167,7 +186,7 @@ def g_closed_form(lad: str, end: str) -> float:
 
     ``G(0) = ∫ cos θL f`` and ``G(π/2) = (2/π) ∫ sin θL f``; e.g. planophile 8/(3π) and 8/(3π²).
     """
-    name = _check_lad(lad)
+    name = check_lad(lad)
     g0 = {"planophile": 8 / (3 * np.pi), "erectophile": 4 / (3 * np.pi), "plagiophile": 32 / (15 * np.pi),
           "extremophile": 28 / (15 * np.pi), "uniform": 2 / np.pi, "spherical": 0.5}
     g90 = {"planophile": 8 / (3 * np.pi ** 2), "erectophile": 16 / (3 * np.pi ** 2),
@@ -180,4 +199,4 @@ def g_closed_form(lad: str, end: str) -> float:
     raise ConfigError(f"end: must be '0' or '90', got {end!r}")
 
 
-__all__ = ["LAD_NAMES", "leaf_inclination_pdf", "g_function", "fold_zenith", "g_closed_form"]
+__all__ = ["LAD_NAMES", "check_lad", "leaf_inclination_pdf", "g_function", "fold_zenith", "g_closed_form"]
