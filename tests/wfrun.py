@@ -27,15 +27,17 @@ def scheduler_workaround_source():
     return text[start:end], text.count("\n", 0, start)
 
 
-def snakemake_command(*args):
-    """The Snakemake CLI on the repository's Snakefile, with ``args``, as an argument list."""
-    return [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
+def snakemake_command(*args, snakefile=SNAKEFILE):
+    """The Snakemake CLI on the repository's Snakefile (or ``snakefile``), with ``args``, as an
+    argument list."""
+    return [sys.executable, "-m", "snakemake", "--snakefile", str(snakefile), *map(str, args)]
 
 
-def snakemake_cli(*args, cwd, timeout=300, env=None):
-    """Run the Snakemake CLI on the repository's Snakefile in ``cwd``; return the process."""
-    return subprocess.run(snakemake_command(*args), cwd=cwd, capture_output=True, text=True,
-                          timeout=timeout, env=dict(env if env is not None else os.environ))
+def snakemake_cli(*args, cwd, timeout=300, env=None, snakefile=SNAKEFILE):
+    """Run the Snakemake CLI on the repository's Snakefile (or ``snakefile``) in ``cwd``; return
+    the process."""
+    return subprocess.run(snakemake_command(*args, snakefile=snakefile), cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, env=dict(env if env is not None else os.environ))
 
 
 def run_quick(workdir, *extra, timeout=900):

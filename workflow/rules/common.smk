@@ -1,6 +1,5 @@
 # Shared helpers: config validation, wildcard constraints, target lists, parameter providers,
 # and the job environment (how shell commands find the vlsforest package).
-import hashlib
 import json
 import os
 import re
@@ -69,46 +68,37 @@ _prepend_env_path("PATH", os.path.dirname(sys.executable))
 _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
 
 
-def library_hash(*parts):
-    """Short SHA-256 over library source files (paths and contents) below ``parts``.
+# ---------------------------------------------------------------------------------------------
+# Code hashes. Snakemake reruns a job when its shell command, script or params change, but not
+# when code inside an imported package changes. Every rule that runs library code therefore has
+# a `library` param: a hash over the source files its command imports, transitively, as read
+# from the code's import statements (vlsforest.workflow_support). No list of files to keep up to
+# date: an edit of a module reruns exactly the rules whose commands import it.
+# The module is loaded from the source tree beside this file (the code the jobs run), without
+# importing the package.
+# ---------------------------------------------------------------------------------------------
+def _load_workflow_support():
+    import importlib.util
 
-    Rules get it as a param, naming the sub-packages/modules they run: Snakemake does not see
-    code changes inside an imported package, and without this a library edit would leave
-    stale results marked up to date. Naming only a rule's own modules keeps an edit of, say,
-    the metrics from re-running the forest synthesis.
-    """
-    h = hashlib.sha256()
-    for part in parts or ("",):
-        root = LIBRARY_DIR / part
-        files = [root] if root.is_file() else sorted(root.rglob("*")) if root.is_dir() else []
-        for path in files:
-            if (
-                "__pycache__" in path.parts
-                or not path.is_file()
-                or path.suffix in (".pyc", ".nbi", ".nbc")
-            ):
-                continue
-            h.update(path.relative_to(LIBRARY_DIR).as_posix().encode())
-            h.update(b"\0")
-            h.update(path.read_bytes())
-            h.update(b"\0")
-    return h.hexdigest()[:16]
+    spec = importlib.util.spec_from_file_location(
+        "vlsforest_workflow_support", LIBRARY_DIR / "workflow_support.py"
+    )
+    loaded = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(loaded)
+    return loaded
 
 
-_BASE = ("io", "cli.py", "errors.py")
-#: the simulator stage's code: simulator, I/O, CLI
-SIM_HASH = library_hash("sim", "commands/simulate.py", "commands/plan.py", *_BASE)
-#: per-stage code hashes (a rule reruns when the code it runs changes)
-SEGMENT_HASH = library_hash("segment.py", "segment", "commands/segment.py", *_BASE)
-STEMS_HASH = library_hash("stems.py", "commands/stems.py", *_BASE)
-PAD_HASH = library_hash("pad", "sim", "commands/pad.py", *_BASE)
-SCENE_HASH = library_hash("scene.py", "voxels.py", "extract.py", "commands/scene.py", "commands/voxels.py", "pad", *_BASE)
-EXTRACT_HASH = library_hash("extract.py", "scene.py", "commands/extract.py", *_BASE)
-METRICS_HASH = library_hash("metrics.py", "commands/metrics.py", "commands/collect.py", *_BASE)
-DIAGNOSE_HASH = library_hash("diagnose", "sim", "metrics.py", "extract.py", "commands/diagnose.py", *_BASE)
-STATS_HASH = library_hash("stats.py", "report", "commands/stats.py", "commands/report.py", *_BASE)
-#: the synthesis stage's code: the virtual forest plus the simulator it records with
-SYNTH_HASH = library_hash("synth", "sim", "commands/synth.py", *_BASE)
+_workflow_support = _load_workflow_support()
+
+
+def command_hash(command):
+    """Hash of the library code `vlsforest <command>` runs (a rule's `library` param)."""
+    return _workflow_support.command_hash(command, LIBRARY_DIR)
+
+
+def script_hash(script):
+    """Hash of the library code the script `script` (relative to workflow/rules) imports."""
+    return _workflow_support.script_hash(Path(workflow.basedir, "workflow", "rules", script), LIBRARY_DIR)
 
 
 

@@ -24,7 +24,7 @@ rule diagnose:
         runtime=diagnose_runtime,
     params:
         setup=diagnosis_param,
-        library=DIAGNOSE_HASH,
+        library=command_hash("diagnose"),
     shell:
         "python -m vlsforest.cli diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
         "--write-sim-config {output.setup} --scenario {wildcards.scenario} -o {output.json} "

@@ -25,7 +25,7 @@ rule stats:
         runtime=10,
     params:
         seed=config["seed"],
-        library=STATS_HASH,
+        library=command_hash("stats"),
     shell:
         "python -m vlsforest.cli stats --metrics {input.metrics} --voxel-counts {input.voxels} "
         "--sim-times {input.times} --seed {params.seed} -o $(dirname {output.findings}) > {log} 2>&1"
@@ -48,7 +48,7 @@ rule figures:
         mem_mb=4000,
         runtime=10,
     params:
-        library=STATS_HASH,
+        library=command_hash("report"),
     shell:
         "python -m vlsforest.cli report figures --metrics {input.metrics} --errors {input.errors} "
         "--voxel-counts {input.voxels} --results results -o {output} > {log} 2>&1"
