@@ -15,16 +15,6 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "Snakefile"
 QUICK = REPO / "config" / "quick.yaml"
-COMMON = REPO / "workflow" / "rules" / "common.smk"
-
-
-def scheduler_workaround_source():
-    """The scheduler workaround as common.smk defines it (Snakemake code, not importable):
-    the source of ``_one_pending_reevaluation`` and the line of common.smk it starts on (0-based)."""
-    text = COMMON.read_text()
-    start = text.index("def _one_pending_reevaluation():")
-    end = text.index("\n_one_pending_reevaluation()\n", start)
-    return text[start:end], text.count("\n", 0, start)
 
 
 def snakemake_command(*args, snakefile=SNAKEFILE):

@@ -1,5 +1,6 @@
 # Shared helpers: config validation, wildcard constraints, target lists, parameter providers,
-# and the job environment (how shell commands find the vlsforest package).
+# the job environment (how shell commands find the vlsforest package), code hashes and the
+# opt-in scheduler patch.
 import json
 import os
 import re
@@ -77,18 +78,17 @@ _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
 # The module is loaded from the source tree beside this file (the code the jobs run), without
 # importing the package.
 # ---------------------------------------------------------------------------------------------
-def _load_workflow_support():
+def load_module_file(name, path):
+    """The Python module in the file ``path``, loaded as ``name`` (nothing else is imported)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(
-        "vlsforest_workflow_support", LIBRARY_DIR / "workflow_support.py"
-    )
+    spec = importlib.util.spec_from_file_location(name, path)
     loaded = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(loaded)
     return loaded
 
 
-_workflow_support = _load_workflow_support()
+_workflow_support = load_module_file("vlsforest_workflow_support", LIBRARY_DIR / "workflow_support.py")
 
 
 def command_hash(command):
@@ -409,46 +409,12 @@ def diagnosis_param(wildcards):
     return json.dumps({k: v for k, v in setup.items() if v is not None}, sort_keys=True)
 
 
-# ------------------------------------------------------------------------ scheduler workaround
-def _one_pending_reevaluation():
-    """Keep at most one pending scheduler re-evaluation timer (a Snakemake 9 cost, not a result).
-
-    With its default ``--max-jobs-per-timespan 100/1s``, Snakemake's job scheduler ends every
-    scheduling pass by starting a 1 s timer whose firing triggers another pass, which starts the
-    next timer. Every pass triggered by a job's start or end therefore begins one more such
-    chain: near the end of a run of N jobs the scheduler makes about N passes a second, each
-    re-evaluating the params and resources of every ready job (the default study: 27 CPU-min of
-    the main process in 80 min, beside jobs that need both cores; about 700,000 timer threads).
-    One pending timer keeps what the timer is for — a pass within the timespan after any pass,
-    so a rate-limited job still starts — and the chains no longer pile up. Applied only to a
-    scheduler that has the method; a no-op otherwise.
-    """
-    import threading
-
-    try:
-        from snakemake.scheduling.job_scheduler import JobScheduler
-    except ImportError:
-        return
-    if not hasattr(JobScheduler, "_schedule_reevalutation") or getattr(
-        JobScheduler._schedule_reevalutation, "one_pending", False
-    ):
-        return
-
-    def _schedule_reevalutation(self, delay):
-        if getattr(self, "_vlsforest_reevaluation", None) is not None:
-            return  # a pass is already due within the timespan
-
-        def fire():
-            self._vlsforest_reevaluation = None  # before the pass it triggers asks for the next
-            self._open_jobs.release()
-
-        timer = threading.Timer(delay, fire)
-        timer.daemon = True
-        self._vlsforest_reevaluation = timer
-        timer.start()
-
-    _schedule_reevalutation.one_pending = True
-    JobScheduler._schedule_reevalutation = _schedule_reevalutation
-
-
-_one_pending_reevaluation()
+# ---------------------------------------------------------------------------------------------
+# Opt-in: VLSFOREST_SCHEDULER_PATCH=1 patches Snakemake's scheduler to keep at most one pending
+# re-evaluation timer (less CPU for Snakemake itself on long runs; results do not depend on it).
+# Off by default: it replaces a private Snakemake method (see workflow/rules/scheduler_patch.py).
+# ---------------------------------------------------------------------------------------------
+_scheduler_patch = load_module_file(
+    "vlsforest_scheduler_patch", Path(workflow.basedir, "workflow", "rules", "scheduler_patch.py")
+)
+_scheduler_patch.apply_if_enabled()
