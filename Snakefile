@@ -3,7 +3,7 @@
 # Results path convention: results/{plot}/{method}/{scenario}/…  (per plot: segment/, stems/, pad/,
 # targets.csv, site.json, crowns.npz, surveys/; per method: voxels.npz, scene/; references under
 # results/{plot}/reference/{scenario}/; summaries under results/summary/)
-# Logs under logs/, benchmark files under logs/benchmarks/. Jobs call `python -m vlsforest.cli`.
+# Logs under logs/, benchmark files under logs/benchmarks/. Jobs call the `vlsforest` command.
 # Reruns: every config value a rule uses is a param, and so is a hash of the library code the
 # rule's command imports (workflow/vlsforest, followed through its import statements): editing a
 # module reruns the rules that import it (to keep results after a purely cosmetic edit:

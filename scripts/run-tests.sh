@@ -6,6 +6,8 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/bootstrap.sh"
 bash "$ROOT/scripts/test-deps.sh"
 cd "$ROOT"
+# the workflow's jobs call the installed `vlsforest` command: the project's environment first
+export PATH="$ROOT/.venv/bin:$PATH"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
 set +e

@@ -10,6 +10,7 @@ repository marks exactly the outputs of the rules whose commands import that mod
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 from pathlib import Path
@@ -135,13 +136,13 @@ def test_real_commands_rehash_exactly_where_the_module_is_imported(tmp_path, edi
 
 
 def test_every_rule_that_runs_the_library_hashes_its_own_command():
-    """A rule running ``vlsforest.cli <cmd>`` has ``library=command_hash("<cmd>")``; a script rule
+    """A rule running ``vlsforest <cmd>`` has ``library=command_hash("<cmd>")``; a script rule
     has ``library=script_hash("<its script>")``."""
     checked = 0
     for smk in sorted(RULES.rglob("*.smk")):
         for block in re.split(r"(?m)^(?=rule )", smk.read_text())[1:]:
             name = block.split(":")[0].removeprefix("rule ")
-            command = re.search(r"vlsforest(?:\.cli)? ([a-z-]+)", block)
+            command = re.search(r'"vlsforest ([a-z-]+)', block)
             script = re.search(r'script:\s*\n\s*"([^"]+)"', block)
             if command:
                 assert f'library=command_hash("{command.group(1)}")' in block, name
@@ -165,10 +166,10 @@ SNAKEMAKE_EDITS = {
 }
 
 
-def _summary(workdir, snakefile=None):
+def _summary(workdir, snakefile=None, env=None):
     """``snakemake --summary`` of the quick config: {output file: (rule, status)}."""
     proc = snakemake_cli("--summary", "--cores", 1, "--configfile", QUICK, "--workflow-profile", "none",
-                         cwd=workdir, snakefile=snakefile or SNAKEFILE)
+                         cwd=workdir, snakefile=snakefile or SNAKEFILE, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [line.split("\t") for line in proc.stdout.splitlines()]
     assert rows and rows[0][:5] == ["output_file", "date", "rule", "log-file(s)", "status"], proc.stdout[:500]
@@ -203,7 +204,9 @@ def test_snakemake_reruns_exactly_the_rules_importing_an_edited_module(touched, 
         shutil.copytree(REPO / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
     with open(copy / "workflow" / "vlsforest" / edited, "a") as fh:
         fh.write("\n# edited\n")
-    rows = _summary(touched, snakefile=copy / "Snakefile")
+    # the jobs would run the copy's package: it is the one on PYTHONPATH (so the one hashed)
+    env = {**os.environ, "PYTHONPATH": str(copy / "workflow")}
+    rows = _summary(touched, snakefile=copy / "Snakefile", env=env)
     changed = {rule for rule, status in rows.values() if status != "ok"}
     assert changed == SNAKEMAKE_EDITS[edited]
     assert all(status == "params changed" for rule, status in rows.values() if rule in changed)

@@ -27,7 +27,18 @@ def snakemake_cli(*args, cwd, timeout=300, env=None, snakefile=SNAKEFILE):
     """Run the Snakemake CLI on the repository's Snakefile (or ``snakefile``) in ``cwd``; return
     the process."""
     return subprocess.run(snakemake_command(*args, snakefile=snakefile), cwd=cwd, capture_output=True,
-                          text=True, timeout=timeout, env=dict(env if env is not None else os.environ))
+                          text=True, timeout=timeout, env=job_env(env if env is not None else os.environ))
+
+
+def job_env(env):
+    """``env`` with the folder of the Python running the tests first on PATH: the workflow's jobs
+    call the installed ``vlsforest`` command of the project's environment, as with the venv
+    activated."""
+    env = dict(env)
+    bindir = os.path.dirname(sys.executable)
+    parts = [p for p in env.get("PATH", "").split(os.pathsep) if p and p != bindir]
+    env["PATH"] = os.pathsep.join([bindir, *parts])
+    return env
 
 
 def run_quick(workdir, *extra, timeout=900):

@@ -4,7 +4,6 @@
 import json
 import os
 import re
-import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -50,14 +49,21 @@ wildcard_constraints:
 
 
 # ---------------------------------------------------------------------------------------------
-# Job environment. Shell commands call ``python -m vlsforest.cli``:
-# - the interpreter running Snakemake (e.g. .venv/bin) goes first on PATH, so jobs find the
-#   project's Python without an activated venv;
-# - with --sdm conda, Snakemake puts the rule's conda env in front of that at job time, and the
-#   source tree on PYTHONPATH supplies the vlsforest package itself (envs/vlsforest.yaml holds
-#   only its dependencies).
-# Both settings are re-made whenever the Snakefile is parsed (also inside cluster jobs).
+# Job environment. Shell commands call the installed `vlsforest` command, found on the PATH of
+# the environment Snakemake runs in (e.g. the project's .venv, activated or put first on PATH by
+# scripts/run-study.sh); nothing is changed.
+# With --sdm conda (profiles/slurm) a rule's conda env holds the dependencies only: there, the
+# source tree beside this file supplies the package (PYTHONPATH) and workflow/bin a `vlsforest`
+# command that runs it with the env's Python (Snakemake puts the env's bin/ in front at job time).
 # ---------------------------------------------------------------------------------------------
+def conda_deployment():
+    """Whether jobs run in the rules' conda envs (--sdm conda)."""
+    from snakemake_interface_executor_plugins.settings import DeploymentMethod
+
+    settings = getattr(workflow, "deployment_settings", None)
+    return settings is not None and DeploymentMethod.CONDA in settings.deployment_method
+
+
 def _prepend_env_path(name, entry):
     """Put ``entry`` first in the os.pathsep-separated variable ``name`` (once)."""
     parts = [p for p in os.environ.get(name, "").split(os.pathsep) if p]
@@ -65,8 +71,27 @@ def _prepend_env_path(name, entry):
         os.environ[name] = os.pathsep.join([entry] + [p for p in parts if p != entry])
 
 
-_prepend_env_path("PATH", os.path.dirname(sys.executable))
-_prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
+def job_package_dir():
+    """Folder of the vlsforest package the jobs run: the source tree with --sdm conda, else the
+    package installed for the Python running Snakemake (found without importing it)."""
+    import importlib.util
+
+    if conda_deployment():
+        return LIBRARY_DIR
+    spec = importlib.util.find_spec("vlsforest")
+    if spec is None or not spec.origin:
+        raise WorkflowError(
+            "the vlsforest package is not installed for this Python (bash scripts/bootstrap.sh, "
+            "then run snakemake from .venv)"
+        )
+    return Path(spec.origin).parent
+
+
+if conda_deployment():
+    _prepend_env_path("PATH", str(Path(workflow.basedir, "workflow", "bin")))
+    _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
+
+JOB_PACKAGE_DIR = job_package_dir()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -75,8 +100,8 @@ _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
 # a `library` param: a hash over the source files its command imports, transitively, as read
 # from the code's import statements (vlsforest.workflow_support). No list of files to keep up to
 # date: an edit of a module reruns exactly the rules whose commands import it.
-# The module is loaded from the source tree beside this file (the code the jobs run), without
-# importing the package.
+# The hashed files are those of the package the jobs run (JOB_PACKAGE_DIR); the module is loaded
+# by path, without importing the package.
 # ---------------------------------------------------------------------------------------------
 def load_module_file(name, path):
     """The Python module in the file ``path``, loaded as ``name`` (nothing else is imported)."""
@@ -93,12 +118,12 @@ _workflow_support = load_module_file("vlsforest_workflow_support", LIBRARY_DIR /
 
 def command_hash(command):
     """Hash of the library code `vlsforest <command>` runs (a rule's `library` param)."""
-    return _workflow_support.command_hash(command, LIBRARY_DIR)
+    return _workflow_support.command_hash(command, JOB_PACKAGE_DIR)
 
 
 def script_hash(script):
     """Hash of the library code the script `script` (relative to workflow/rules) imports."""
-    return _workflow_support.script_hash(Path(workflow.basedir, "workflow", "rules", script), LIBRARY_DIR)
+    return _workflow_support.script_hash(Path(workflow.basedir, "workflow", "rules", script), JOB_PACKAGE_DIR)
 
 
 

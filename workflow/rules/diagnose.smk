@@ -26,6 +26,6 @@ rule diagnose:
         setup=diagnosis_param,
         library=command_hash("diagnose"),
     shell:
-        "python -m vlsforest.cli diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
+        "vlsforest diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
         "--write-sim-config {output.setup} --scenario {wildcards.scenario} -o {output.json} "
         "--figure {output.figure} --workers {threads} > {log} 2>&1"

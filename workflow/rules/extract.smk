@@ -23,5 +23,5 @@ rule extract_reference:
         radius=scenario_radius,
         library=command_hash("extract"),
     shell:
-        "python -m vlsforest.cli extract reference {params.recording} --segment {input.segment} "
+        "vlsforest extract reference {params.recording} --segment {input.segment} "
         "--targets {input.targets} --radius {params.radius} -o {output.trees} --metrics {output.metrics} > {log} 2>&1"

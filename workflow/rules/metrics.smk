@@ -21,4 +21,4 @@ rule collect_metrics:
         tables=metric_tables(),
         library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect metrics {params.tables} -o {output} > {log} 2>&1"
+        "vlsforest collect metrics {params.tables} -o {output} > {log} 2>&1"

@@ -23,7 +23,7 @@ rule pad:
         args=pad_args,
         library=command_hash("pad"),
     shell:
-        "python -m vlsforest.cli pad {params.tls_dir} {params.args} -o {output} > {log} 2>&1"
+        "vlsforest pad {params.tls_dir} {params.args} -o {output} > {log} 2>&1"
 
 
 rule pad_virtual:
@@ -50,7 +50,7 @@ rule pad_virtual:
         args=pad_args,
         library=command_hash("pad"),
     shell:
-        "python -m vlsforest.cli pad {params.tls_dir} {params.args} -o {output.vox} "
+        "vlsforest pad {params.tls_dir} {params.args} -o {output.vox} "
         "--validate results/forest --plot {wildcards.plot} --table {output.table} --figure {output.figure} "
         "> {log} 2>&1"
 
@@ -71,4 +71,4 @@ rule pad_summary:
     params:
         library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect pad {input} -o {output.csv} --figure {output.png} > {log} 2>&1"
+        "vlsforest collect pad {input} -o {output.csv} --figure {output.png} > {log} 2>&1"

@@ -24,6 +24,6 @@ rule scene:
         helios=lambda wc: f"--helios results/{wc.plot}/{wc.method}/scene/helios" if config["scene"]["helios_export"] else "",
         library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene build --voxels {input.voxels} --targets {input.targets} "
+        "vlsforest scene build --voxels {input.voxels} --targets {input.targets} "
         "--site {input.site} --stems {input.stems} --reflectance-json {params.reflectance:q} "
         "--method {wildcards.method} {params.helios} -o {output}/scene.yaml > {log} 2>&1"

@@ -22,7 +22,7 @@ rule segment:
         settings=block_param("segment"),
         library=command_hash("segment"),
     shell:
-        "python -m vlsforest.cli segment {params.tls} --config-json {params.settings:q} -o {output} > {log} 2>&1"
+        "vlsforest segment {params.tls} --config-json {params.settings:q} -o {output} > {log} 2>&1"
 
 
 rule targets:
@@ -43,7 +43,7 @@ rule targets:
         plot_json=lambda wc: _plot_path(wc.plot, "plot_json"),
         library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene targets {input.segment} --plot-json {params.plot_json} "
+        "vlsforest scene targets {input.segment} --plot-json {params.plot_json} "
         "-o {output.targets} > {log} 2>&1"
 
 
@@ -64,5 +64,5 @@ rule crowns:
     params:
         library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene crowns {input.segment} --stems {input.stems} "
+        "vlsforest scene crowns {input.segment} --stems {input.stems} "
         "--targets {input.targets} -o {output} > {log} 2>&1"

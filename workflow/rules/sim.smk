@@ -20,7 +20,7 @@ rule survey:
         seed=scenario_seed,
         library=command_hash("plan"),
     shell:
-        "python -m vlsforest.cli plan --trajectory {params.trajectory} --scenario-json {params.scenario:q} "
+        "vlsforest plan --trajectory {params.trajectory} --scenario-json {params.scenario:q} "
         "--seed {params.seed} -o {output} > {log} 2>&1"
 
 
@@ -50,7 +50,7 @@ rule simulate:
         margin=config["simulation"]["region_margin_m"],
         library=command_hash("simulate"),
     shell:
-        "python -m vlsforest.cli simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
+        "vlsforest simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
         "--timing {output.timing} --seed {params.seed} --workers {threads} "
         "--region-from {input.site} --region-margin {params.margin} 2>&1 "
         # progress: every 10 % of the blocks a line goes to the log and to the terminal,
@@ -77,7 +77,7 @@ rule sim_trees:
     params:
         library=command_hash("extract"),
     shell:
-        "python -m vlsforest.cli extract sim {input.laz} --targets {input.targets} -o {output.trees} "
+        "vlsforest extract sim {input.laz} --targets {input.targets} -o {output.trees} "
         "--metrics {output.metrics} > {log} 2>&1"
 
 
@@ -96,4 +96,4 @@ rule sim_times:
     params:
         library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect times {input} -o {output} > {log} 2>&1"
+        "vlsforest collect times {input} -o {output} > {log} 2>&1"

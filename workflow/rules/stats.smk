@@ -27,7 +27,7 @@ rule stats:
         seed=config["seed"],
         library=command_hash("stats"),
     shell:
-        "python -m vlsforest.cli stats --metrics {input.metrics} --voxel-counts {input.voxels} "
+        "vlsforest stats --metrics {input.metrics} --voxel-counts {input.voxels} "
         "--sim-times {input.times} --seed {params.seed} -o $(dirname {output.findings}) > {log} 2>&1"
 
 
@@ -50,5 +50,5 @@ rule figures:
     params:
         library=command_hash("report"),
     shell:
-        "python -m vlsforest.cli report figures --metrics {input.metrics} --errors {input.errors} "
+        "vlsforest report figures --metrics {input.metrics} --errors {input.errors} "
         "--voxel-counts {input.voxels} --results results -o {output} > {log} 2>&1"

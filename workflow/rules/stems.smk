@@ -23,5 +23,5 @@ rule stems:
         settings=block_param("stems"),
         library=command_hash("stems"),
     shell:
-        "python -m vlsforest.cli stems --segment {input.segment} --targets {input.targets} "
+        "vlsforest stems --segment {input.segment} --targets {input.targets} "
         "--scans {params.scans} --config-json {params.settings:q} -o {output} > {log} 2>&1"

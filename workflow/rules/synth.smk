@@ -25,7 +25,7 @@ rule synth_plot:
         settings=synth_param,
         library=command_hash("synth"),
     shell:
-        "python -m vlsforest.cli synth --config-json {params.settings:q} --plots {wildcards.plot} --part "
+        "vlsforest synth --config-json {params.settings:q} --plots {wildcards.plot} --part "
         "--workers {threads} -o results/forest > {log} 2>&1"
 
 
@@ -44,4 +44,4 @@ rule forest_truth:
     params:
         library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect truth {input} -o {output.trees} > {log} 2>&1"
+        "vlsforest collect truth {input} -o {output.trees} > {log} 2>&1"

@@ -28,7 +28,7 @@ rule voxels:
         seed=config["seed"],
         library=command_hash("voxels"),
     shell:
-        "python -m vlsforest.cli voxels {input.crowns} --method {wildcards.method} "
+        "vlsforest voxels {input.crowns} --method {wildcards.method} "
         "--method-json {params.method:q} --groups-json {params.groups:q} {params.pad} "
         "--targets {input.targets} --default-group {params.default_group} --seed {params.seed} "
         "-o {output} > {log} 2>&1"
@@ -49,4 +49,4 @@ rule voxel_counts:
     params:
         library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect voxels {input} -o {output} > {log} 2>&1"
+        "vlsforest collect voxels {input} -o {output} > {log} 2>&1"
