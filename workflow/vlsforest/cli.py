@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(only)
     args = parser.parse_args(argv)
     try:
-        keep_freed_memory()  # less system time re-touching freed memory (vlsforest._memory)
+        keep_freed_memory()  # only with VLSFOREST_MALLOC_TUNING=1 (vlsforest._memory)
         rc = args.func(args)
     except VlsforestError as exc:
         print(f"vlsforest {args.command}: error: {exc}", file=sys.stderr)
