@@ -58,29 +58,6 @@ def test_worse_metrics_needs_a_significant_and_relevant_increase():
     assert st.worse_metrics(D0, D1, ["tiny", "big", "better"], margin=0.0) == ["tiny", "big"]
 
 
-def test_whitened_projection_is_the_diagonal_one_without_correlation_and_counts_copies_once():
-    rng = np.random.default_rng(2)
-    r, J = rng.normal(size=6), rng.normal(size=6)
-    w = rng.uniform(0.5, 2.0, size=6)
-    diag = st.project(r, J, w)
-    white = st.project_whitened(r, J, w, 1 / np.sqrt(w), np.eye(6))
-    np.testing.assert_allclose(white, diag, rtol=1e-12)
-    # observable 0 repeated four times (four views of one property, perfectly correlated):
-    # the diagonal metric counts it four times, the whitened one once
-    r4, J4 = np.r_[np.repeat(r[0], 4), r[1:]], np.r_[np.repeat(J[0], 4), J[1:]]
-    w4, sd4 = np.ones(9), np.ones(9)
-    R4 = np.eye(9)
-    R4[:4, :4] = 1.0
-    assert st.project_whitened(r4, J4, w4, sd4, R4)[1] == pytest.approx(st.project(r, J, np.ones(6))[1], rel=1e-9)
-    assert st.project(r4, J4, w4)[1] != pytest.approx(st.project(r, J, np.ones(6))[1], rel=1e-3)
-    # the estimate: strongly correlated columns keep a high shrunk correlation, unrelated ones ~0
-    D = rng.normal(size=(40, 3))
-    D[:, 1] = D[:, 0] + 0.1 * rng.normal(size=40)
-    sd, R, lam = st.shrunk_correlation(D)
-    assert 0 <= lam <= 1 and R[0, 1] > 0.7 and abs(R[0, 2]) < 0.3
-    np.testing.assert_allclose(sd, D.std(axis=0, ddof=1))
-
-
 def test_grid_minimum_finds_the_vertex_of_a_parabola():
     x = np.linspace(0, 10, 7)
     assert st.grid_minimum(x, (x - 3.7) ** 2 + 1, 0, 10) == pytest.approx(3.7)
@@ -711,10 +688,6 @@ def test_bad_sim_config_is_one_clear_error(tmp_path):
                                    "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
     with pytest.raises(ConfigError, match="unknown physics candidate 'wind'"):
         load_setup(bad, real_dir=tmp_path)
-    bad.write_text(yaml.safe_dump({"scenario": "uls", "metric": "euclid",
-                                   "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
-    with pytest.raises(ConfigError, match="metric must be diagonal or whitened"):
-        load_setup(bad, real_dir=tmp_path)
     for q in (0, 2.5, True):
         bad.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": q,
                                        "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
@@ -1086,16 +1059,6 @@ def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(mon
     o2 = core.diagnose(setup, log=lambda m: None)["oracle"]
     assert o2["error_told_truth"] == pytest.approx(o["error_given"])
     assert o2["worse_told_truth"] == []
-
-
-def test_logic_runs_in_the_whitened_metric(monkeypatch):
-    from vlsforest.diagnose import core
-
-    study = _LinearStudy({"range_noise": {"sigma_m": 0.06}})
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
-    rep = core.diagnose(core.Setup(scenario="uls", plots=[], seed=0, metric="whitened"), log=lambda m: None)
-    assert rep["metric"] == "whitened" and rep["accepted"][:1] == ["range_noise"]
-    assert rep["effects"][0]["parameters"]["sigma_m"] == pytest.approx(0.06, rel=0.2)
 
 
 def test_logic_null_and_out_of_library_are_not_attributed(monkeypatch):

@@ -415,7 +415,6 @@ def diagnosis_param(wildcards):
         "folds": d.get("folds", 3),
         "grid": d.get("grid", 7),
         "candidates": d.get("candidates") or None,
-        **({"metric": d["metric"]} if "metric" in d else {}),
         **({"beam_sample_quality": d["beam_sample_quality"]} if "beam_sample_quality" in d else {}),
         **({"realisations": d["realisations"]} if "realisations" in d else {}),
         "plots": {
