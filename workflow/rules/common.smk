@@ -246,6 +246,15 @@ def side_view_clouds():
     return expand("results/{plot}/{source}/{scenario}/trees.laz", plot=PLOTS, source=sources, scenario=SCENARIOS)
 
 
+def side_view_args(wildcards=None):
+    """The clouds of side_view_clouds() as `--tree-cloud PLOT/SOURCE/SCENARIO=PATH` options."""
+    out = []
+    for path in side_view_clouds():
+        plot, source, scenario = path.split("/")[1:4]  # results/{plot}/{source}/{scenario}/trees.laz
+        out.append(f"--tree-cloud {plot}/{source}/{scenario}={path}")
+    return " ".join(out)
+
+
 def virtual_plots():
     return [p for p in PLOTS if is_virtual(p)]
 

@@ -48,7 +48,8 @@ rule figures:
         mem_mb=4000,
         runtime=10,
     params:
+        clouds=side_view_args,
         library=command_hash("report"),
     shell:
         "vlsforest report figures --metrics {input.metrics} --errors {input.errors} "
-        "--voxel-counts {input.voxels} --results results -o {output} > {log} 2>&1"
+        "--voxel-counts {input.voxels} {params.clouds} -o {output} > {log} 2>&1"
