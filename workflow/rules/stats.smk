@@ -28,7 +28,9 @@ rule stats:
         library=command_hash("stats"),
     shell:
         "vlsforest stats --metrics {input.metrics} --voxel-counts {input.voxels} "
-        "--sim-times {input.times} --seed {params.seed} -o $(dirname {output.findings}) > {log} 2>&1"
+        "--sim-times {input.times} --seed {params.seed} --out-errors {output.errors} "
+        "--out-summary {output.summary} --out-tests {output.tests} --out-multireturn {output.mr} "
+        "--out-table5 {output.table5} --out-findings {output.findings} > {log} 2>&1"
 
 
 rule figures:
