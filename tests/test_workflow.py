@@ -94,7 +94,7 @@ def _api_dry_run(workdir, configfile=None, config=None):
     """Dry run of the default target through the Snakemake Python API.
 
     Returns the set of outputs that would be (re)built. The API changes the working directory
-    and the Snakefile sets PATH/PYTHONPATH: both are restored.
+    (and with --sdm conda the Snakefile would set PATH/PYTHONPATH): both are restored.
     """
     from snakemake.api import SnakemakeApi
     from snakemake.settings.types import (

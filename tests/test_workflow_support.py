@@ -210,3 +210,37 @@ def test_snakemake_reruns_exactly_the_rules_importing_an_edited_module(touched, 
     changed = {rule for rule, status in rows.values() if status != "ok"}
     assert changed == SNAKEMAKE_EDITS[edited]
     assert all(status == "params changed" for rule, status in rows.values() if rule in changed)
+
+
+# ---------------------------------------------------------------------------------------------
+# the job environment
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("conda", [False, True])
+def test_only_conda_deployment_puts_the_source_tree_on_the_job_paths(tmp_path, conda):
+    """Jobs call the installed `vlsforest`: PATH and PYTHONPATH stay as they are, except with
+    --sdm conda, whose envs hold the dependencies only (then workflow/ goes on PYTHONPATH and
+    workflow/bin, the env's `vlsforest` launcher, on PATH). The Snakefile of a copy of the
+    repository prints both after the workflow is parsed (a conda-less machine then stops at
+    `conda info`)."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    for folder in ("workflow", "config", "envs"):
+        shutil.copytree(REPO / folder, repo / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    (repo / "Snakefile").write_text((REPO / "Snakefile").read_text() + (
+        "\nimport os as _os\n"
+        "print('JOBPATH', _os.environ.get('PATH', ''))\n"
+        "print('JOBPYTHONPATH', _os.environ.get('PYTHONPATH', ''))\n"))
+    env = {**os.environ, "PYTHONPATH": str(PACKAGE.parent)}
+    extra = ["--sdm", "conda"] if conda else []
+    proc = snakemake_cli("-n", "--cores", 1, "--configfile", QUICK, "--workflow-profile", "none", *extra,
+                         cwd=tmp_path, env=env, snakefile=repo / "Snakefile")
+    lines = dict(line.split(" ", 1) for line in proc.stdout.splitlines() if line.startswith("JOB") and " " in line)
+    path, pythonpath = lines["JOBPATH"].split(os.pathsep), lines["JOBPYTHONPATH"].split(os.pathsep)
+    if conda:
+        assert path[0] == str(repo / "workflow" / "bin")
+        assert pythonpath[0] == str(repo / "workflow")
+        assert (repo / "workflow" / "bin" / "vlsforest").stat().st_mode & 0o111
+    else:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert str(repo / "workflow" / "bin") not in path
+        assert pythonpath == [str(PACKAGE.parent)]
