@@ -371,7 +371,7 @@ def simulate_runtime(wildcards, attempt):
 
 
 def diagnose_mem_mb(wildcards, attempt):
-    """Memory of the diagnosis: one plot's trace held while the next is made (session 29's
+    """Memory of the diagnosis: one plot's trace held while the next is made (measured on the
     default study: largest process 10.8 GB, PSS of the job 10.1 GB), doubled per retry."""
     return 16000 * attempt
 
