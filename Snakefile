@@ -3,10 +3,11 @@
 # Results path convention: results/{plot}/{method}/{scenario}/…  (per plot: segment/, stems/, pad/,
 # targets.csv, site.json, crowns.npz, surveys/; per method: voxels.npz, scene/; references under
 # results/{plot}/reference/{scenario}/; summaries under results/summary/)
-# Logs under logs/, benchmark files under logs/benchmarks/. Jobs call `python -m vlsforest.cli`.
-# Reruns: every config value a rule uses is a param, and so is a hash of the library sources
-# (workflow/vlsforest): editing the library reruns the outputs (to keep results after a purely
-# cosmetic edit: snakemake --cleanup-metadata <files>).
+# Logs under logs/, benchmark files under logs/benchmarks/. Jobs call the `vlsforest` command.
+# Reruns: every config value a rule uses is a param, and so is a hash of the library code the
+# rule's command imports (workflow/vlsforest, followed through its import statements): editing a
+# module reruns the rules that import it (to keep results after a purely cosmetic edit:
+# snakemake --cleanup-metadata <files>).
 # Run:  bash scripts/run-study.sh            (default target, embedded default data)
 #       snakemake --cores 2 --configfile config/quick.yaml
 # Config: config/config.yaml of the working directory if it has one, else this repository's.

@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+import benchresult
+
 
 def _rss_gb() -> float:
     with open("/proc/self/status") as f:
@@ -84,9 +86,11 @@ def main(argv=None) -> int:
     ps._features(cloud_arrays(res))
     t2 = time.perf_counter()
     print(f"  re-detection {t1 - t0:.1f} s ({len(res.points['xyz']):,} points), observables {t2 - t1:.1f} s")
+    benchresult.record(plot=a.plot, scenario=a.scenario, trace_gb=held, redetect_s=t1 - t0, observables_s=t2 - t1,
+                       peak_gb=_peak_gb())
     del res
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(benchresult.run("bench_diagnose_trace", main))

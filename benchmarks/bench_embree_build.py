@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+import benchresult
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "workflow"))
 
@@ -96,6 +98,7 @@ def _run(a, tmp: str) -> None:
         r = res[mode]
         print(f"trace {a.rays:,} rays, robust {mode == 'robust'!s:5s}: {r['trace_s']:6.2f} s, {r['hits']:,} hits")
     print(f"trace ratio robust / plain: {res['robust']['trace_s'] / res['plain']['trace_s']:.2f}×")
+    benchresult.record(cubes=n, rays=a.rays, runs=res)
     tp = np.load(Path(tmp) / "plain.npy")
     tr = np.load(Path(tmp) / "robust.npy")
     both = np.isfinite(tp) & np.isfinite(tr)
@@ -105,4 +108,5 @@ def _run(a, tmp: str) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # a --child run is part of its parent's row
+    sys.exit(main() if "--child" in sys.argv else benchresult.run("bench_embree_build", main))

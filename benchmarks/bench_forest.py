@@ -21,6 +21,8 @@ import numpy as np
 
 from vlsforest.synth import ORGAN_FOLIAGE, DEFAULT_FOREST, forest_from_config, generate_plot_trees, truth_table
 
+import benchresult
+
 
 def _peak_rss_mib() -> float:
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -81,8 +83,12 @@ def main(argv=None) -> int:
     print(f"   truth_table:         {t_truth:8.2f} s")
     print(f"   mesh memory {mem / 2**20:.0f} MiB; peak RSS before {rss0:.0f} MiB, "
           f"after {_peak_rss_mib():.0f} MiB")
+    benchresult.record(seed=args.seed, plot=plot.name, layout_s=t_layout, trees=len(geoms), targets=int(tg.sum()),
+                       triangles=int(ntri.sum()), generate_s=t_geom, truth_table_s=t_truth,
+                       cpa_sum_over_area=float(df["cpa"].sum() / area), union_canopy_cover=float(covered.mean()),
+                       mesh_mib=mem / 2**20, peak_rss_mib=_peak_rss_mib())
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchresult.run("bench_forest", main))

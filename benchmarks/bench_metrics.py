@@ -22,6 +22,8 @@ import numpy as np
 from vlsforest.io.las import PointCloud
 from vlsforest.metrics import cloud_metrics
 
+import benchresult
+
 TARGET_S = 60.0
 #: model variants: (name, quantisation step of the voxel model or None)
 VARIANTS = (
@@ -108,8 +110,10 @@ def main(argv=None) -> int:
         f"total: {n_clouds} tree clouds, {n_points} points, {total:.2f} s "
         f"(cbh {args.cbh_convention}); target {TARGET_S:.0f} s; ratio {total / TARGET_S:.3f}"
     )
+    benchresult.record(tree_clouds=n_clouds, points=n_points, seconds_total=total, target_s=TARGET_S,
+                       cbh_convention=args.cbh_convention)
     return 0 if total <= TARGET_S else 1
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchresult.run("bench_metrics", main))

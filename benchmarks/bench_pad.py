@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+import benchresult
+
 
 def _largest_plot(forest: Path) -> str:
     best, area = None, -1.0
@@ -96,8 +98,10 @@ def main(argv=None) -> int:
             print(f"median |bias| over species × crown thirds, {est}: {m:.1f} % "
                   f"({capped[est]:.1f} % against the truth capped at PADmax)")
     print(f"outputs in {out}")
+    benchresult.record(plot=plot, scans=acc.info["n_scans"], shots=n_shots, echoes=n_echoes,
+                       crossings=acc.info["crossings"], **t)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(benchresult.run("bench_pad", main))

@@ -26,6 +26,8 @@ import pandas as pd
 
 from vlsforest.segment import SegmentConfig, match_stems, segment_files
 
+import benchresult
+
 TARGET_S = 300.0
 
 
@@ -109,8 +111,11 @@ def main(argv=None) -> int:
               f"(target ≤ {TARGET_S:.0f} s: {'OK' if total <= TARGET_S else 'TOO SLOW'})")
         print(f"stem bridges {i['n_bridges']}, unreached voxels {i['unreached']}, attached {i['attached']}")
         _accuracy(args.forest, args.plot, scans, res)
+        benchresult.record(plot=args.plot, scans=len(scans), points=i["n_points"], trees=len(res.trees),
+                           seconds_total=total, target_s=TARGET_S, settings=settings,
+                           **{k: v for k, v in i.items() if k.startswith("t_")})
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchresult.run("bench_segment", main))

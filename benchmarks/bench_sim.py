@@ -44,6 +44,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import benchresult
+
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parent.parent / "shared" / "data" / "real"  # <repo>/../shared/data/real
 CASES = ("uls", "als", "crown20m")
@@ -384,6 +386,8 @@ def main(argv=None) -> int:
         res = run_case(args.case, args.profile, args.repeat)
         if args.json:
             args.json.write_text(json.dumps(res))
+        else:
+            benchresult.record(cases=[res])
         return 0
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -406,8 +410,10 @@ def main(argv=None) -> int:
         peak = max(crown[0]["rss_self_gb"], crown[0]["rss_children_gb"])
         print(f"20 M-voxel crown peak RSS {peak:.2f} GB: {'within' if peak <= 4.0 else 'OVER'} the 4 GB target")
     print("Reproduce: . .venv/bin/activate && python benchmarks/bench_sim.py")
+    benchresult.record(cases=results)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # a case run for --case all (--json) is part of that run's row
+    sys.exit(main() if "--json" in sys.argv else benchresult.run("bench_sim", main))

@@ -36,6 +36,8 @@ from vlsforest.io.mesh import TriangleMesh, read_mesh, write_mesh
 from vlsforest.stems import build_stem, read_scanner_positions
 from vlsforest.synth.trees import ORGAN_STEM
 
+import benchresult
+
 TARGET_PLOT_S = 300.0
 TARGET_MEAN_M = 0.02
 TARGET_EXTENT_M = 0.10
@@ -124,12 +126,12 @@ def bench_plot(forest: Path, plot: str, depth: int, out: Path) -> list[dict]:
     return rows
 
 
-def main() -> int:
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("forest", type=Path, help="a forest folder written by vlsforest synth")
     ap.add_argument("--plots", nargs="*", help="plots to run (default: all under plots/)")
     ap.add_argument("--depth", type=int, default=8)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     plots = args.plots or sorted(p.name for p in (args.forest / "plots").iterdir() if p.is_dir())
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 30)
@@ -161,8 +163,10 @@ def main() -> int:
         and df.max_extent_cm.max() <= 100 * TARGET_EXTENT_M
     )
     print("targets met" if ok else "TARGETS MISSED")
+    benchresult.record(depth=args.depth, per_plot_s=per_plot.to_dict(), trees=df.to_dict("records"),
+                       targets_met=bool(ok))
     return 0 if ok else 1
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchresult.run("bench_stems", main))

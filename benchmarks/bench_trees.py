@@ -19,6 +19,8 @@ import numpy as np
 
 from vlsforest.synth import generate_tree, sample_tree_params, target_tree_params, true_plant_area
 
+import benchresult
+
 # species mix of the surrounding trees (roughly the Bretten plots' composition)
 MIX = {"fagus_sylvatica": 0.4, "picea_abies": 0.2, "quercus_petraea": 0.12,
        "pseudotsuga_menziesii": 0.12, "carpinus_betulus": 0.08, "pinus_sylvestris": 0.08}
@@ -75,8 +77,11 @@ def main(argv=None) -> int:
           f"max {ns.max():,};  mesh memory {ms:.0f} MiB")
     print(f"true plant area, 30 targets at 0.25 m: {t_pa:8.2f} s  (max rel. sum error {err:.1e})")
     print(f"peak RSS: {_peak_rss_mib():.0f} MiB")
+    benchresult.record(seed=args.seed, target_params_s=t_params, targets_s=t_targets, target_triangles=int(nt.sum()),
+                       surrounding=args.n_surrounding, surrounding_s=t_sur, surrounding_triangles=int(ns.sum()),
+                       plant_area_s=t_pa, plant_area_max_rel_error=float(err), peak_rss_mib=_peak_rss_mib())
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(benchresult.run("bench_trees", main))

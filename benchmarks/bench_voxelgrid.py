@@ -20,6 +20,8 @@ import numpy as np
 
 from vlsforest.sim._voxelgrid import VoxelGrid
 
+import benchresult
+
 CROWN_HALF = np.array([5.0, 5.0, 10.0])  # semi-axes (m)
 CROWN_CENTRE = np.array([0.0, 0.0, 15.0])
 FLIGHT_Z = 70.0
@@ -137,8 +139,10 @@ def main(argv=None) -> int:
     print(f"peak RSS <= 4 GB for the 20 M-voxel crown (build + trace): "
           f"{'yes' if rss20 <= 4.0 else 'no'} ({rss20:.2f} GB)")
     run_case("2 M-voxel crown", 0.05, 0.06, 0.42, args.rays)
+    benchresult.record(rays=args.rays, threads=numba.get_num_threads(), peak_rss_20m_gb=rss20,
+                       peak_rss_gb=peak_rss_gb())
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(benchresult.run("bench_voxelgrid", main))

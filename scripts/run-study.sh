@@ -6,6 +6,8 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/bootstrap.sh"
 cd "$ROOT"
+# the workflow's jobs call the installed `vlsforest` command: the project's environment first
+export PATH="$ROOT/.venv/bin:$PATH"
 .venv/bin/snakemake --cores "${CORES:-all}" "$@"
 .venv/bin/snakemake "$@" --report results/report.html
 echo "report: $ROOT/results/report.html"

@@ -8,6 +8,8 @@ bash "$ROOT/scripts/bootstrap.sh"
 bash "$ROOT/scripts/test-deps.sh"
 bash "$ROOT/scripts/build-docs.sh" >/dev/null || { echo "run-tests: the documentation does not build" >&2; exit 1; }
 cd "$ROOT"
+# the workflow's jobs call the installed `vlsforest` command: the project's environment first
+export PATH="$ROOT/.venv/bin:$PATH"
 MARK=(-m "not slow")
 [ "${VLSFOREST_SLOW:-0}" = "1" ] && MARK=()
 set +e

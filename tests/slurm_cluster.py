@@ -44,8 +44,10 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-#: where Debian puts the daemons (often not on a user's PATH)
-_SEARCH_PATH = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin", "/usr/bin"])
+#: where Debian puts the daemons (often not on a user's PATH), after the folder of the Python
+#: running the tests (the jobs call its installed `vlsforest`)
+_SEARCH_PATH = os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", ""), "/usr/sbin", "/sbin",
+                                "/usr/bin"])
 
 DAEMONS = ("munged", "slurmctld", "slurmd")
 CLIENTS = ("munge", "unmunge", "sbatch", "squeue", "sinfo", "scontrol", "scancel", "srun")

@@ -209,23 +209,31 @@ def test_cli_report_figures(tables, tmp_path):
                str(tmp_path / "errors.csv"), "--voxel-counts", str(tmp_path / "voxel_counts.csv"),
                "-o", str(tmp_path / "figs"), "--side-view", "nolabel"])
     assert rc == 2
+    rc = main(["report", "figures", "--metrics", str(tmp_path / "tree_metrics.csv"), "--errors",
+               str(tmp_path / "errors.csv"), "--voxel-counts", str(tmp_path / "voxel_counts.csv"),
+               "-o", str(tmp_path / "figs"), "--tree-cloud", f"Q1/scaled={tmp_path / 's.las'}"])
+    assert rc == 2
 
 
-def test_side_view_selection_from_results(tmp_path):
+def test_side_view_selection_from_the_given_clouds(tmp_path):
     m = make_metrics(n_trees=4, methods=("fixed_0.25", "scaled"))
     m["n_points"] = 10.0
     m.loc[(m["method"] == "reference") & (m["tree_id"] == "3") & (m["scenario"] == "uls"), "n_points"] = 500.0
     m.loc[(m["method"] == "reference") & (m["tree_id"] == "3") & (m["scenario"] == "uls"), "hmin"] = 2.0
     plot = m.loc[m["tree_id"] == "3", "plot"].iloc[0]
-    assert F.side_view_selection(m, tmp_path) is None  # no clouds yet
+    clouds = {(plot, me, "uls"): tmp_path / plot / me / "uls" / "trees.laz" for me in ("reference", "fixed_0.25", "scaled")}
+    assert F.side_view_selection(m, clouds) is None  # the files do not exist yet
     rng = np.random.default_rng(2)
     for me in ("reference", "fixed_0.25", "scaled"):
         xyz = rng.uniform(0, 1, (200, 3)) + [0, 0, 300.0]
         tid = np.repeat([3, 4], 100).astype(np.int32)
         (tmp_path / plot / me / "uls").mkdir(parents=True)
         write_las(tmp_path / plot / me / "uls" / "trees.laz", PointCloud(xyz, {"tree_id": tid}))
-    sel = F.side_view_selection(m, tmp_path)
+    sel = F.side_view_selection(m, clouds)
     assert list(sel["clouds"]) == ["scaled", "fixed_0.25"]
+    assert sel["clouds"]["scaled"] == clouds[(plot, "scaled", "uls")]
+    # only the clouds given are read: without the reference's, no figure 13
+    assert F.side_view_selection(m, {k: v for k, v in clouds.items() if k[1] != "reference"}) is None
     assert sel["tree_id"] == 3.0 and sel["tree_field"] == "tree_id"
     from vlsforest.io.las import read_las
 

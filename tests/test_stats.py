@@ -335,6 +335,27 @@ def test_cli_writes_files_byte_identical(tmp_path):
     assert "agree" in (tmp_path / "a" / "findings.md").read_text()
 
 
+def test_cli_writes_each_file_where_its_option_names_it(tmp_path, capsys):
+    """The workflow names every output: with --out-… options the files go exactly there (same
+    bytes as under -o's standard names); without them or -o, one clear error."""
+    from vlsforest.cli import main
+
+    mp, vp, sp = _write_inputs(tmp_path)
+    common = ["stats", "--metrics", str(mp), "--voxel-counts", str(vp), "--sim-times", str(sp), "--n-boot", "300"]
+    assert main([*common, "-o", str(tmp_path / "std")]) == 0
+    named = {"--out-errors": "e.csv", "--out-summary": "s.csv", "--out-tests": "t.csv",
+             "--out-multireturn": "m.csv", "--out-table5": "t5.csv", "--out-findings": "f.md"}
+    args = [x for opt, name in named.items() for x in (opt, str(tmp_path / "own" / name))]
+    assert main([*common, *args]) == 0
+    assert sorted(p.name for p in (tmp_path / "own").iterdir()) == sorted(named.values())
+    std = ("errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md")
+    for name, own in zip(std, named.values()):
+        assert (tmp_path / "own" / own).read_bytes() == (tmp_path / "std" / name).read_bytes(), name
+    capsys.readouterr()
+    assert main([*common, *args[:-2]]) == 2
+    assert capsys.readouterr().err.strip() == "vlsforest stats: error: --out-findings: missing (or give -o OUTDIR)"
+
+
 def test_missing_column_names_the_file(tmp_path, capsys):
     from vlsforest.cli import main
 

@@ -170,7 +170,6 @@ def _pad_grid(xyz, a0=0.25, seed=0, t_range=(0.2, 0.95)):
 
 
 def test_scaled_model_pad_from_transmittance_and_species():
-    pytest.importorskip("vlsforest.pad", reason="PAD module")
     from vlsforest.pad import g_function
 
     xyz = _crown(3000)

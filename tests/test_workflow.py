@@ -17,6 +17,7 @@ import shutil
 import time
 from pathlib import Path
 
+import jsonschema
 import laspy
 import numpy as np
 import pandas as pd
@@ -93,7 +94,7 @@ def _api_dry_run(workdir, configfile=None, config=None):
     """Dry run of the default target through the Snakemake Python API.
 
     Returns the set of outputs that would be (re)built. The API changes the working directory
-    and the Snakefile sets PATH/PYTHONPATH: both are restored.
+    (and with --sdm conda the Snakefile would set PATH/PYTHONPATH): both are restored.
     """
     from snakemake.api import SnakemakeApi
     from snakemake.settings.types import (
@@ -264,7 +265,6 @@ def test_schema_lists_match_the_library():
 
 def test_shipped_configs_are_valid():
     """config.yaml and quick.yaml pass the schema."""
-    jsonschema = pytest.importorskip("jsonschema")
     schema = _load(SCHEMA)
     for path in (DEFAULT, QUICK):
         jsonschema.Draft202012Validator(schema).validate(_load(path))
@@ -439,7 +439,8 @@ def test_slurm_profile_dry_run(tmp_path):
     """`-n` with profiles/slurm (executor slurm) plans every job without sbatch. Where conda is
     missing, `--sdm env-modules` switches the profile's conda deployment off (no rule uses
     envmodules), since even a dry run with --sdm conda calls `conda info`."""
-    pytest.importorskip("snakemake_executor_plugin_slurm")
+    import snakemake_executor_plugin_slurm  # noqa: F401  (pinned in envs/requirements.txt)
+
     extra = [] if shutil.which("conda") else ["--sdm", "env-modules"]
     proc = _snakemake("-n", "--workflow-profile", SLURM_PROFILE, "--configfile", QUICK, *extra, cwd=tmp_path)
     out = proc.stdout + proc.stderr

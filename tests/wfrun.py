@@ -15,27 +15,30 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "Snakefile"
 QUICK = REPO / "config" / "quick.yaml"
-COMMON = REPO / "workflow" / "rules" / "common.smk"
 
 
-def scheduler_workaround_source():
-    """The scheduler workaround as common.smk defines it (Snakemake code, not importable):
-    the source of ``_one_pending_reevaluation`` and the line of common.smk it starts on (0-based)."""
-    text = COMMON.read_text()
-    start = text.index("def _one_pending_reevaluation():")
-    end = text.index("\n_one_pending_reevaluation()\n", start)
-    return text[start:end], text.count("\n", 0, start)
+def snakemake_command(*args, snakefile=SNAKEFILE):
+    """The Snakemake CLI on the repository's Snakefile (or ``snakefile``), with ``args``, as an
+    argument list."""
+    return [sys.executable, "-m", "snakemake", "--snakefile", str(snakefile), *map(str, args)]
 
 
-def snakemake_command(*args):
-    """The Snakemake CLI on the repository's Snakefile, with ``args``, as an argument list."""
-    return [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), *map(str, args)]
+def snakemake_cli(*args, cwd, timeout=300, env=None, snakefile=SNAKEFILE):
+    """Run the Snakemake CLI on the repository's Snakefile (or ``snakefile``) in ``cwd``; return
+    the process."""
+    return subprocess.run(snakemake_command(*args, snakefile=snakefile), cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, env=job_env(env if env is not None else os.environ))
 
 
-def snakemake_cli(*args, cwd, timeout=300, env=None):
-    """Run the Snakemake CLI on the repository's Snakefile in ``cwd``; return the process."""
-    return subprocess.run(snakemake_command(*args), cwd=cwd, capture_output=True, text=True,
-                          timeout=timeout, env=dict(env if env is not None else os.environ))
+def job_env(env):
+    """``env`` with the folder of the Python running the tests first on PATH: the workflow's jobs
+    call the installed ``vlsforest`` command of the project's environment, as with the venv
+    activated."""
+    env = dict(env)
+    bindir = os.path.dirname(sys.executable)
+    parts = [p for p in env.get("PATH", "").split(os.pathsep) if p and p != bindir]
+    env["PATH"] = os.pathsep.join([bindir, *parts])
+    return env
 
 
 def run_quick(workdir, *extra, timeout=900):

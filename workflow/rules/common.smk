@@ -1,10 +1,9 @@
 # Shared helpers: config validation, wildcard constraints, target lists, parameter providers,
-# and the job environment (how shell commands find the vlsforest package).
-import hashlib
+# the job environment (how shell commands find the vlsforest package), code hashes and the
+# opt-in scheduler patch.
 import json
 import os
 import re
-import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -50,14 +49,21 @@ wildcard_constraints:
 
 
 # ---------------------------------------------------------------------------------------------
-# Job environment. Shell commands call ``python -m vlsforest.cli``:
-# - the interpreter running Snakemake (e.g. .venv/bin) goes first on PATH, so jobs find the
-#   project's Python without an activated venv;
-# - with --sdm conda, Snakemake puts the rule's conda env in front of that at job time, and the
-#   source tree on PYTHONPATH supplies the vlsforest package itself (envs/vlsforest.yaml holds
-#   only its dependencies).
-# Both settings are re-made whenever the Snakefile is parsed (also inside cluster jobs).
+# Job environment. Shell commands call the installed `vlsforest` command, found on the PATH of
+# the environment Snakemake runs in (e.g. the project's .venv, activated or put first on PATH by
+# scripts/run-study.sh); nothing is changed.
+# With --sdm conda (profiles/slurm) a rule's conda env holds the dependencies only: there, the
+# source tree beside this file supplies the package (PYTHONPATH) and workflow/bin a `vlsforest`
+# command that runs it with the env's Python (Snakemake puts the env's bin/ in front at job time).
 # ---------------------------------------------------------------------------------------------
+def conda_deployment():
+    """Whether jobs run in the rules' conda envs (--sdm conda)."""
+    from snakemake_interface_executor_plugins.settings import DeploymentMethod
+
+    settings = getattr(workflow, "deployment_settings", None)
+    return settings is not None and DeploymentMethod.CONDA in settings.deployment_method
+
+
 def _prepend_env_path(name, entry):
     """Put ``entry`` first in the os.pathsep-separated variable ``name`` (once)."""
     parts = [p for p in os.environ.get(name, "").split(os.pathsep) if p]
@@ -65,50 +71,59 @@ def _prepend_env_path(name, entry):
         os.environ[name] = os.pathsep.join([entry] + [p for p in parts if p != entry])
 
 
-_prepend_env_path("PATH", os.path.dirname(sys.executable))
-_prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
+def job_package_dir():
+    """Folder of the vlsforest package the jobs run: the source tree with --sdm conda, else the
+    package installed for the Python running Snakemake (found without importing it)."""
+    import importlib.util
+
+    if conda_deployment():
+        return LIBRARY_DIR
+    spec = importlib.util.find_spec("vlsforest")
+    if spec is None or not spec.origin:
+        raise WorkflowError(
+            "the vlsforest package is not installed for this Python (bash scripts/bootstrap.sh, "
+            "then run snakemake from .venv)"
+        )
+    return Path(spec.origin).parent
 
 
-def library_hash(*parts):
-    """Short SHA-256 over library source files (paths and contents) below ``parts``.
+if conda_deployment():
+    _prepend_env_path("PATH", str(Path(workflow.basedir, "workflow", "bin")))
+    _prepend_env_path("PYTHONPATH", str(LIBRARY_DIR.parent))
 
-    Rules get it as a param, naming the sub-packages/modules they run: Snakemake does not see
-    code changes inside an imported package, and without this a library edit would leave
-    stale results marked up to date. Naming only a rule's own modules keeps an edit of, say,
-    the metrics from re-running the forest synthesis.
-    """
-    h = hashlib.sha256()
-    for part in parts or ("",):
-        root = LIBRARY_DIR / part
-        files = [root] if root.is_file() else sorted(root.rglob("*")) if root.is_dir() else []
-        for path in files:
-            if (
-                "__pycache__" in path.parts
-                or not path.is_file()
-                or path.suffix in (".pyc", ".nbi", ".nbc")
-            ):
-                continue
-            h.update(path.relative_to(LIBRARY_DIR).as_posix().encode())
-            h.update(b"\0")
-            h.update(path.read_bytes())
-            h.update(b"\0")
-    return h.hexdigest()[:16]
+JOB_PACKAGE_DIR = job_package_dir()
 
 
-_BASE = ("io", "cli.py", "errors.py")
-#: the simulator stage's code: simulator, I/O, CLI
-SIM_HASH = library_hash("sim", "commands/simulate.py", "commands/plan.py", *_BASE)
-#: per-stage code hashes (a rule reruns when the code it runs changes)
-SEGMENT_HASH = library_hash("segment.py", "segment", "commands/segment.py", *_BASE)
-STEMS_HASH = library_hash("stems.py", "commands/stems.py", *_BASE)
-PAD_HASH = library_hash("pad", "sim", "commands/pad.py", *_BASE)
-SCENE_HASH = library_hash("scene.py", "voxels.py", "extract.py", "commands/scene.py", "commands/voxels.py", "pad", *_BASE)
-EXTRACT_HASH = library_hash("extract.py", "scene.py", "commands/extract.py", *_BASE)
-METRICS_HASH = library_hash("metrics.py", "commands/metrics.py", "commands/collect.py", *_BASE)
-DIAGNOSE_HASH = library_hash("diagnose", "sim", "metrics.py", "extract.py", "commands/diagnose.py", *_BASE)
-STATS_HASH = library_hash("stats.py", "report", "commands/stats.py", "commands/report.py", *_BASE)
-#: the synthesis stage's code: the virtual forest plus the simulator it records with
-SYNTH_HASH = library_hash("synth", "sim", "commands/synth.py", *_BASE)
+# ---------------------------------------------------------------------------------------------
+# Code hashes. Snakemake reruns a job when its shell command, script or params change, but not
+# when code inside an imported package changes. Every rule that runs library code therefore has
+# a `library` param: a hash over the source files its command imports, transitively, as read
+# from the code's import statements (vlsforest.workflow_support). No list of files to keep up to
+# date: an edit of a module reruns exactly the rules whose commands import it.
+# The hashed files are those of the package the jobs run (JOB_PACKAGE_DIR); the module is loaded
+# by path, without importing the package.
+# ---------------------------------------------------------------------------------------------
+def load_module_file(name, path):
+    """The Python module in the file ``path``, loaded as ``name`` (nothing else is imported)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    loaded = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(loaded)
+    return loaded
+
+
+_workflow_support = load_module_file("vlsforest_workflow_support", LIBRARY_DIR / "workflow_support.py")
+
+
+def command_hash(command):
+    """Hash of the library code `vlsforest <command>` runs (a rule's `library` param)."""
+    return _workflow_support.command_hash(command, JOB_PACKAGE_DIR)
+
+
+def script_hash(script):
+    """Hash of the library code the script `script` (relative to workflow/rules) imports."""
+    return _workflow_support.script_hash(Path(workflow.basedir, "workflow", "rules", script), JOB_PACKAGE_DIR)
 
 
 
@@ -231,6 +246,15 @@ def side_view_clouds():
     return expand("results/{plot}/{source}/{scenario}/trees.laz", plot=PLOTS, source=sources, scenario=SCENARIOS)
 
 
+def side_view_args(wildcards=None):
+    """The clouds of side_view_clouds() as `--tree-cloud PLOT/SOURCE/SCENARIO=PATH` options."""
+    out = []
+    for path in side_view_clouds():
+        plot, source, scenario = path.split("/")[1:4]  # results/{plot}/{source}/{scenario}/trees.laz
+        out.append(f"--tree-cloud {plot}/{source}/{scenario}={path}")
+    return " ".join(out)
+
+
 def virtual_plots():
     return [p for p in PLOTS if is_virtual(p)]
 
@@ -347,7 +371,7 @@ def simulate_runtime(wildcards, attempt):
 
 
 def diagnose_mem_mb(wildcards, attempt):
-    """Memory of the diagnosis: one plot's trace held while the next is made (session 29's
+    """Memory of the diagnosis: one plot's trace held while the next is made (measured on the
     default study: largest process 10.8 GB, PSS of the job 10.1 GB), doubled per retry."""
     return 16000 * attempt
 
@@ -400,7 +424,6 @@ def diagnosis_param(wildcards):
         "folds": d.get("folds", 3),
         "grid": d.get("grid", 7),
         "candidates": d.get("candidates") or None,
-        **({"metric": d["metric"]} if "metric" in d else {}),
         **({"beam_sample_quality": d["beam_sample_quality"]} if "beam_sample_quality" in d else {}),
         **({"realisations": d["realisations"]} if "realisations" in d else {}),
         "plots": {
@@ -419,46 +442,12 @@ def diagnosis_param(wildcards):
     return json.dumps({k: v for k, v in setup.items() if v is not None}, sort_keys=True)
 
 
-# ------------------------------------------------------------------------ scheduler workaround
-def _one_pending_reevaluation():
-    """Keep at most one pending scheduler re-evaluation timer (a Snakemake 9 cost, not a result).
-
-    With its default ``--max-jobs-per-timespan 100/1s``, Snakemake's job scheduler ends every
-    scheduling pass by starting a 1 s timer whose firing triggers another pass, which starts the
-    next timer. Every pass triggered by a job's start or end therefore begins one more such
-    chain: near the end of a run of N jobs the scheduler makes about N passes a second, each
-    re-evaluating the params and resources of every ready job (the default study: 27 CPU-min of
-    the main process in 80 min, beside jobs that need both cores; about 700,000 timer threads).
-    One pending timer keeps what the timer is for — a pass within the timespan after any pass,
-    so a rate-limited job still starts — and the chains no longer pile up. Applied only to a
-    scheduler that has the method; a no-op otherwise.
-    """
-    import threading
-
-    try:
-        from snakemake.scheduling.job_scheduler import JobScheduler
-    except ImportError:
-        return
-    if not hasattr(JobScheduler, "_schedule_reevalutation") or getattr(
-        JobScheduler._schedule_reevalutation, "one_pending", False
-    ):
-        return
-
-    def _schedule_reevalutation(self, delay):
-        if getattr(self, "_vlsforest_reevaluation", None) is not None:
-            return  # a pass is already due within the timespan
-
-        def fire():
-            self._vlsforest_reevaluation = None  # before the pass it triggers asks for the next
-            self._open_jobs.release()
-
-        timer = threading.Timer(delay, fire)
-        timer.daemon = True
-        self._vlsforest_reevaluation = timer
-        timer.start()
-
-    _schedule_reevalutation.one_pending = True
-    JobScheduler._schedule_reevalutation = _schedule_reevalutation
-
-
-_one_pending_reevaluation()
+# ---------------------------------------------------------------------------------------------
+# Opt-in: VLSFOREST_SCHEDULER_PATCH=1 patches Snakemake's scheduler to keep at most one pending
+# re-evaluation timer (less CPU for Snakemake itself on long runs; results do not depend on it).
+# Off by default: it replaces a private Snakemake method (see workflow/rules/scheduler_patch.py).
+# ---------------------------------------------------------------------------------------------
+_scheduler_patch = load_module_file(
+    "vlsforest_scheduler_patch", Path(workflow.basedir, "workflow", "rules", "scheduler_patch.py")
+)
+_scheduler_patch.apply_if_enabled()

@@ -24,8 +24,8 @@ rule diagnose:
         runtime=diagnose_runtime,
     params:
         setup=diagnosis_param,
-        library=DIAGNOSE_HASH,
+        library=command_hash("diagnose"),
     shell:
-        "python -m vlsforest.cli diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
+        "vlsforest diagnose --real results/forest/plots --sim-config-json {params.setup:q} "
         "--write-sim-config {output.setup} --scenario {wildcards.scenario} -o {output.json} "
         "--figure {output.figure} --workers {threads} > {log} 2>&1"

@@ -21,8 +21,7 @@ rule extract_reference:
     params:
         recording=scenario_recording,
         radius=scenario_radius,
-        library=EXTRACT_HASH,
-        metrics_library=METRICS_HASH,
+        library=command_hash("extract"),
     shell:
-        "python -m vlsforest.cli extract reference {params.recording} --segment {input.segment} "
+        "vlsforest extract reference {params.recording} --segment {input.segment} "
         "--targets {input.targets} --radius {params.radius} -o {output.trees} --metrics {output.metrics} > {log} 2>&1"

@@ -19,6 +19,6 @@ rule collect_metrics:
         runtime=10,
     params:
         tables=metric_tables(),
-        library=METRICS_HASH,
+        library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect metrics {params.tables} -o {output} > {log} 2>&1"
+        "vlsforest collect metrics {params.tables} -o {output} > {log} 2>&1"

@@ -21,9 +21,9 @@ rule pad:
     params:
         tls_dir=lambda wc: _plot_path(wc.plot, "tls_dir"),
         args=pad_args,
-        library=PAD_HASH,
+        library=command_hash("pad"),
     shell:
-        "python -m vlsforest.cli pad {params.tls_dir} {params.args} -o {output} > {log} 2>&1"
+        "vlsforest pad {params.tls_dir} {params.args} -o {output} > {log} 2>&1"
 
 
 rule pad_virtual:
@@ -48,9 +48,9 @@ rule pad_virtual:
     params:
         tls_dir=lambda wc: _plot_path(wc.plot, "tls_dir"),
         args=pad_args,
-        library=PAD_HASH,
+        library=command_hash("pad"),
     shell:
-        "python -m vlsforest.cli pad {params.tls_dir} {params.args} -o {output.vox} "
+        "vlsforest pad {params.tls_dir} {params.args} -o {output.vox} "
         "--validate results/forest --plot {wildcards.plot} --table {output.table} --figure {output.figure} "
         "> {log} 2>&1"
 
@@ -69,6 +69,6 @@ rule pad_summary:
         mem_mb=2000,
         runtime=10,
     params:
-        library=PAD_HASH,
+        library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect pad {input} -o {output.csv} --figure {output.png} > {log} 2>&1"
+        "vlsforest collect pad {input} -o {output.csv} --figure {output.png} > {log} 2>&1"

@@ -22,8 +22,8 @@ rule scene:
     params:
         reflectance=lambda wc: json.dumps(config["scene"]["reflectance"], sort_keys=True),
         helios=lambda wc: f"--helios results/{wc.plot}/{wc.method}/scene/helios" if config["scene"]["helios_export"] else "",
-        library=SCENE_HASH,
+        library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene build --voxels {input.voxels} --targets {input.targets} "
+        "vlsforest scene build --voxels {input.voxels} --targets {input.targets} "
         "--site {input.site} --stems {input.stems} --reflectance-json {params.reflectance:q} "
         "--method {wildcards.method} {params.helios} -o {output}/scene.yaml > {log} 2>&1"

@@ -20,9 +20,9 @@ rule segment:
     params:
         tls=tls_args,
         settings=block_param("segment"),
-        library=SEGMENT_HASH,
+        library=command_hash("segment"),
     shell:
-        "python -m vlsforest.cli segment {params.tls} --config-json {params.settings:q} -o {output} > {log} 2>&1"
+        "vlsforest segment {params.tls} --config-json {params.settings:q} -o {output} > {log} 2>&1"
 
 
 rule targets:
@@ -41,9 +41,9 @@ rule targets:
         runtime=10,
     params:
         plot_json=lambda wc: _plot_path(wc.plot, "plot_json"),
-        library=SCENE_HASH,
+        library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene targets {input.segment} --plot-json {params.plot_json} "
+        "vlsforest scene targets {input.segment} --plot-json {params.plot_json} "
         "-o {output.targets} > {log} 2>&1"
 
 
@@ -62,7 +62,7 @@ rule crowns:
         mem_mb=4000,
         runtime=10,
     params:
-        library=SCENE_HASH,
+        library=command_hash("scene"),
     shell:
-        "python -m vlsforest.cli scene crowns {input.segment} --stems {input.stems} "
+        "vlsforest scene crowns {input.segment} --stems {input.stems} "
         "--targets {input.targets} -o {output} > {log} 2>&1"

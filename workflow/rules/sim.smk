@@ -18,9 +18,9 @@ rule survey:
         scenario=scenario_param,
         trajectory=scenario_trajectory,
         seed=scenario_seed,
-        library=SIM_HASH,
+        library=command_hash("plan"),
     shell:
-        "python -m vlsforest.cli plan --trajectory {params.trajectory} --scenario-json {params.scenario:q} "
+        "vlsforest plan --trajectory {params.trajectory} --scenario-json {params.scenario:q} "
         "--seed {params.seed} -o {output} > {log} 2>&1"
 
 
@@ -48,9 +48,9 @@ rule simulate:
     params:
         seed=scenario_seed,
         margin=config["simulation"]["region_margin_m"],
-        library=SIM_HASH,
+        library=command_hash("simulate"),
     shell:
-        "python -m vlsforest.cli simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
+        "vlsforest simulate {input.scene}/scene.yaml {input.survey} -o {output.laz} "
         "--timing {output.timing} --seed {params.seed} --workers {threads} "
         "--region-from {input.site} --region-margin {params.margin} 2>&1 "
         # progress: every 10 % of the blocks a line goes to the log and to the terminal,
@@ -75,10 +75,9 @@ rule sim_trees:
         mem_mb=4000,
         runtime=10,
     params:
-        library=EXTRACT_HASH,
-        metrics_library=METRICS_HASH,
+        library=command_hash("extract"),
     shell:
-        "python -m vlsforest.cli extract sim {input.laz} --targets {input.targets} -o {output.trees} "
+        "vlsforest extract sim {input.laz} --targets {input.targets} -o {output.trees} "
         "--metrics {output.metrics} > {log} 2>&1"
 
 
@@ -95,6 +94,6 @@ rule sim_times:
         mem_mb=1000,
         runtime=5,
     params:
-        library=METRICS_HASH,
+        library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect times {input} -o {output} > {log} 2>&1"
+        "vlsforest collect times {input} -o {output} > {log} 2>&1"

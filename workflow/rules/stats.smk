@@ -25,10 +25,12 @@ rule stats:
         runtime=10,
     params:
         seed=config["seed"],
-        library=STATS_HASH,
+        library=command_hash("stats"),
     shell:
-        "python -m vlsforest.cli stats --metrics {input.metrics} --voxel-counts {input.voxels} "
-        "--sim-times {input.times} --seed {params.seed} -o $(dirname {output.findings}) > {log} 2>&1"
+        "vlsforest stats --metrics {input.metrics} --voxel-counts {input.voxels} "
+        "--sim-times {input.times} --seed {params.seed} --out-errors {output.errors} "
+        "--out-summary {output.summary} --out-tests {output.tests} --out-multireturn {output.mr} "
+        "--out-table5 {output.table5} --out-findings {output.findings} > {log} 2>&1"
 
 
 rule figures:
@@ -48,7 +50,8 @@ rule figures:
         mem_mb=4000,
         runtime=10,
     params:
-        library=STATS_HASH,
+        clouds=side_view_args,
+        library=command_hash("report"),
     shell:
-        "python -m vlsforest.cli report figures --metrics {input.metrics} --errors {input.errors} "
-        "--voxel-counts {input.voxels} --results results -o {output} > {log} 2>&1"
+        "vlsforest report figures --metrics {input.metrics} --errors {input.errors} "
+        "--voxel-counts {input.voxels} {params.clouds} -o {output} > {log} 2>&1"

@@ -21,7 +21,7 @@ rule stems:
     params:
         scans=lambda wc: _plot_path(wc.plot, "scans"),
         settings=block_param("stems"),
-        library=STEMS_HASH,
+        library=command_hash("stems"),
     shell:
-        "python -m vlsforest.cli stems --segment {input.segment} --targets {input.targets} "
+        "vlsforest stems --segment {input.segment} --targets {input.targets} "
         "--scans {params.scans} --config-json {params.settings:q} -o {output} > {log} 2>&1"

@@ -23,9 +23,9 @@ rule synth_plot:
         runtime=30,
     params:
         settings=synth_param,
-        library=SYNTH_HASH,
+        library=command_hash("synth"),
     shell:
-        "python -m vlsforest.cli synth --config-json {params.settings:q} --plots {wildcards.plot} --part "
+        "vlsforest synth --config-json {params.settings:q} --plots {wildcards.plot} --part "
         "--workers {threads} -o results/forest > {log} 2>&1"
 
 
@@ -41,5 +41,7 @@ rule forest_truth:
         "logs/synth/forest_truth.log",
     conda:
         "../../envs/vlsforest.yaml"
+    params:
+        library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect truth {input} -o {output.trees} > {log} 2>&1"
+        "vlsforest collect truth {input} -o {output.trees} > {log} 2>&1"

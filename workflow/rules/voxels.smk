@@ -26,9 +26,9 @@ rule voxels:
         pad=method_pad_args,
         default_group=config["pad"]["default_group"],
         seed=config["seed"],
-        library=SCENE_HASH,
+        library=command_hash("voxels"),
     shell:
-        "python -m vlsforest.cli voxels {input.crowns} --method {wildcards.method} "
+        "vlsforest voxels {input.crowns} --method {wildcards.method} "
         "--method-json {params.method:q} --groups-json {params.groups:q} {params.pad} "
         "--targets {input.targets} --default-group {params.default_group} --seed {params.seed} "
         "-o {output} > {log} 2>&1"
@@ -47,6 +47,6 @@ rule voxel_counts:
         mem_mb=2000,
         runtime=10,
     params:
-        library=METRICS_HASH,
+        library=command_hash("collect"),
     shell:
-        "python -m vlsforest.cli collect voxels {input} -o {output} > {log} 2>&1"
+        "vlsforest collect voxels {input} -o {output} > {log} 2>&1"

@@ -1,17 +1,20 @@
-"""How a ``vlsforest`` process asks the system for memory (private).
+"""Opt-in tuning of how a ``vlsforest`` process asks the system for memory (private).
 
-The stages allocate and free arrays of hundreds of MB to several GB (a default-forest trace of
-the diagnosis holds ≈ 3.5 GB). With glibc's defaults every array above 32 MB is its own
-``mmap`` and goes back to the kernel when freed, so the next one is fresh memory again; with
-transparent huge pages each first touch zeroes 2 MB pages. On virtual machines that hand freed
-guest memory back to their host (free page reporting), both make the same memory cost system
-time over and over (``benchmarks/bench_fresh_memory.py``; README, Performance).
+Off by default: a ``vlsforest`` process uses the C library's and the kernel's own settings.
+``VLSFOREST_MALLOC_TUNING=1`` in the environment switches it on for every ``vlsforest`` command
+(and the processes they start); ``0`` or unset leaves the system's behaviour.
 
-:func:`keep_freed_memory` switches a process (and the processes it starts) to keeping what it
-freed for its own later allocations, and to small pages. The outputs do not change, only where
-the bytes live; the price is a somewhat higher peak resident size (+10 % on the quick forest's
-diagnosis). Set ``VLSFOREST_MEMORY=system`` to keep the system's defaults; a process started
-with its own ``MALLOC_*`` or ``GLIBC_TUNABLES`` settings is left as it is.
+What it changes, and when it helps: the stages allocate and free arrays of hundreds of MB to
+several GB (a default-forest trace of the diagnosis holds ≈ 3.5 GB). With glibc's defaults every
+array above 32 MB is its own ``mmap`` and goes back to the kernel when freed, so the next one is
+fresh memory again; with transparent huge pages each first touch zeroes 2 MB pages. On virtual
+machines that hand freed guest memory back to their host (free page reporting), both make the
+same memory cost system time over and over. :func:`keep_freed_memory` switches a process (and the
+processes it starts) to keeping what it freed for its own later allocations (glibc ``mallopt``:
+no trimming, no ``mmap`` allocations) and to small pages (``prctl(PR_SET_THP_DISABLE)``). The
+outputs do not change, only where the bytes live; the price is a higher peak resident size
+(+10 % on the quick forest's diagnosis). A process started with its own ``MALLOC_*`` or
+``GLIBC_TUNABLES`` settings is left as it is; without glibc on Linux nothing changes.
 """
 
 from __future__ import annotations
@@ -21,8 +24,8 @@ import os
 
 from vlsforest.errors import ConfigError
 
-#: environment variable that turns the behaviour off (``system``; ``keep`` or unset: on)
-SWITCH = "VLSFOREST_MEMORY"
+#: environment variable that turns the tuning on (``1``; ``0`` or unset: the system's behaviour)
+SWITCH = "VLSFOREST_MALLOC_TUNING"
 
 _M_TRIM_THRESHOLD = -1  # mallopt parameters (malloc.h)
 _M_MMAP_MAX = -4
@@ -40,13 +43,14 @@ def _own_malloc_setting(name: str) -> bool:
 def plain_environ(environ: dict | None = None) -> dict:
     """A copy of ``environ`` (default ``os.environ``) without malloc settings and without
     :data:`SWITCH`: a child started with it begins with the system's defaults and may apply
-    :func:`keep_freed_memory` itself (the benchmark's and the tests' baseline)."""
+    :func:`keep_freed_memory` itself (the tests' baseline)."""
     env = os.environ if environ is None else environ
     return {k: v for k, v in env.items() if not _own_malloc_setting(k) and k != SWITCH}
 
 
 def keep_freed_memory(environ: dict | None = None) -> bool:
-    """Keep freed heap memory in this process and its children, and use small pages.
+    """Keep freed heap memory in this process and its children, and use small pages, if
+    :data:`SWITCH` is ``1``.
 
     Parameters
     ----------
@@ -56,20 +60,21 @@ def keep_freed_memory(environ: dict | None = None) -> bool:
     Returns
     -------
     bool
-        True when the settings were applied; False when ``VLSFOREST_MEMORY=system``, when the
-        environment already carries malloc settings, or when the C library is not glibc on Linux.
+        True when the settings were applied; False when ``VLSFOREST_MALLOC_TUNING`` is unset or
+        ``0`` (the default), when the environment already carries malloc settings, or when the
+        C library is not glibc on Linux.
 
     Raises
     ------
     ConfigError
-        ``VLSFOREST_MEMORY`` set to anything but ``system`` or ``keep``.
+        ``VLSFOREST_MALLOC_TUNING`` set to anything but ``0`` or ``1``.
     """
     env = os.environ if environ is None else environ
-    choice = env.get(SWITCH, "").strip().lower()
-    if choice not in ("", "keep", "system"):
-        raise ConfigError(f"{SWITCH} must be 'system' (the C library's defaults) or 'keep' "
-                          f"(the default), got {env[SWITCH]!r}")
-    if choice == "system":
+    choice = env.get(SWITCH, "").strip()
+    if choice not in ("", "0", "1"):
+        raise ConfigError(f"{SWITCH} must be 1 (tune malloc and huge pages) or 0 (the system's "
+                          f"behaviour, the default), got {env[SWITCH]!r}")
+    if choice != "1":
         return False
     if any(_own_malloc_setting(k) for k in env):
         return False

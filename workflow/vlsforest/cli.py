@@ -19,12 +19,13 @@ from vlsforest.errors import VlsforestError
 #: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
 COMMANDS = (
     "synth", "segment", "extract", "stems", "voxels", "pad", "scene", "demo", "plan", "simulate",
-    "detect", "summarize-sims", "metrics", "collect", "stats", "report", "diagnose",
+    "detect", "metrics", "collect", "stats", "report", "diagnose",
 )
 
 
 def module_name(command: str) -> str:
-    """Module of a sub-command (``summarize-sims`` → ``vlsforest.commands.summarize_sims``)."""
+    """Module of a sub-command (``extract`` → ``vlsforest.commands.extract``; a ``-`` in a name
+    becomes ``_``)."""
     return f"vlsforest.commands.{command.replace('-', '_')}"
 
 
@@ -42,13 +43,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="<stage>")
     sub.required = True
     for name in COMMANDS if only is None else (only,):
-        try:
-            module = importlib.import_module(module_name(name))
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name(name):
-                continue  # stage not implemented in this checkout
-            raise
-        module.register(sub)
+        importlib.import_module(module_name(name)).register(sub)
     return parser
 
 
@@ -59,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(only)
     args = parser.parse_args(argv)
     try:
-        keep_freed_memory()  # less system time re-touching freed memory (vlsforest._memory)
+        keep_freed_memory()  # only with VLSFOREST_MALLOC_TUNING=1 (vlsforest._memory)
         rc = args.func(args)
     except VlsforestError as exc:
         print(f"vlsforest {args.command}: error: {exc}", file=sys.stderr)

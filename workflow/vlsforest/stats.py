@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import warnings
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -1071,7 +1072,45 @@ def _write_csv(df: pd.DataFrame, path: Path) -> Path:
     return path
 
 
-def write_stats(metrics_path, voxel_counts_path, sim_times_path, out_dir, *, seed: int = 0,
+#: the files of ``vlsforest stats``: key → file name inside an output folder
+STATS_FILES = {
+    "errors": "errors.csv",
+    "summary_by_species": "summary_by_species.csv",
+    "tests": "tests.csv",
+    "multireturn_ttest": "multireturn_ttest.csv",
+    "table5": "table5.csv",
+    "findings": "findings.md",
+}
+
+
+def stats_outputs(outputs) -> dict:
+    """The output file of each key of :data:`STATS_FILES`.
+
+    Parameters
+    ----------
+    outputs : str, Path or mapping
+        A folder (the files get the names of :data:`STATS_FILES` inside it) or a mapping of
+        every key of :data:`STATS_FILES` to its file.
+
+    Returns
+    -------
+    dict of str to Path
+
+    Raises
+    ------
+    ConfigError
+        A mapping that misses a key or has an unknown one.
+    """
+    if isinstance(outputs, Mapping):
+        missing = [k for k in STATS_FILES if k not in outputs]
+        unknown = [k for k in outputs if k not in STATS_FILES]
+        if missing or unknown:
+            raise ConfigError(f"stats outputs: missing {missing}, unknown {unknown} (keys: {', '.join(STATS_FILES)})")
+        return {k: Path(outputs[k]) for k in STATS_FILES}
+    return {k: Path(outputs) / name for k, name in STATS_FILES.items()}
+
+
+def write_stats(metrics_path, voxel_counts_path, sim_times_path, outputs, *, seed: int = 0,
                 n_boot: int = 2000) -> dict:
     """Run every comparison and write the files of ``vlsforest stats``.
 
@@ -1079,8 +1118,9 @@ def write_stats(metrics_path, voxel_counts_path, sim_times_path, out_dir, *, see
     ----------
     metrics_path, voxel_counts_path, sim_times_path : str or Path
         The input tables (see the module docstring).
-    out_dir : str or Path
-        Output folder (created).
+    outputs : str, Path or mapping
+        Where the files go: a folder, or a mapping of every key of :data:`STATS_FILES` to its
+        file (:func:`stats_outputs`); parent folders are created.
     seed : int
         Bootstrap seed.
     n_boot : int
@@ -1089,10 +1129,10 @@ def write_stats(metrics_path, voxel_counts_path, sim_times_path, out_dir, *, see
     Returns
     -------
     dict of str to Path
-        ``errors, summary_by_species, tests, multireturn_ttest, table5, findings`` → files
-        ``errors.csv, summary_by_species.csv, tests.csv, multireturn_ttest.csv, table5.csv,
-        findings.md``.
+        ``errors, summary_by_species, tests, multireturn_ttest, table5, findings`` → the files
+        written.
     """
+    files = stats_outputs(outputs)
     metrics = load_metrics(metrics_path)
     vc = load_voxel_counts(voxel_counts_path)
     st = load_sim_times(sim_times_path)
@@ -1102,16 +1142,16 @@ def write_stats(metrics_path, voxel_counts_path, sim_times_path, out_dir, *, see
     mr = multireturn_ttest(metrics, source=str(metrics_path))
     t5 = table5(errors, vc, st, sources=(str(metrics_path), str(voxel_counts_path), str(sim_times_path)))
     findings = evaluate_findings(errors, tests, mr, t5, vc)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    for path in files.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
     paths = {
-        "errors": _write_csv(errors, out / "errors.csv"),
-        "summary_by_species": _write_csv(summary, out / "summary_by_species.csv"),
-        "tests": _write_csv(tests, out / "tests.csv"),
-        "multireturn_ttest": _write_csv(mr, out / "multireturn_ttest.csv"),
-        "table5": _write_csv(t5, out / "table5.csv"),
+        "errors": _write_csv(errors, files["errors"]),
+        "summary_by_species": _write_csv(summary, files["summary_by_species"]),
+        "tests": _write_csv(tests, files["tests"]),
+        "multireturn_ttest": _write_csv(mr, files["multireturn_ttest"]),
+        "table5": _write_csv(t5, files["table5"]),
     }
-    fp = out / "findings.md"
+    fp = files["findings"]
     fp.write_text(findings_markdown(findings), encoding="utf-8", newline="\n")
     paths["findings"] = fp
     return paths

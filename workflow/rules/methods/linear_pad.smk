@@ -32,6 +32,6 @@ rule voxels_linear_pad:
         min_pulses=config["pad"]["min_pulses"],
         default_group=config["pad"]["default_group"],
         seed=config["seed"],
-        library=SCENE_HASH,
+        library=script_hash("methods/linear_pad.py"),
     script:
         "linear_pad.py"

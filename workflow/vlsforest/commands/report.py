@@ -2,7 +2,7 @@
 
 ``vlsforest report figures --metrics tree_metrics.csv --errors errors.csv --voxel-counts
 voxel_counts.csv -o FIGDIR [--side-view LABEL=LAS …] [--ground-z Z] [--tree-field F --tree-id ID]
-[--results DIR] [--seed N]`` writes the PNGs of :data:`vlsforest.report.figures.FIGURE_FILES` (figure 13 only
+[--tree-cloud PLOT/SOURCE/SCENARIO=LAS …] [--seed N]`` writes the PNGs of :data:`vlsforest.report.figures.FIGURE_FILES` (figure 13 only
 with ``--side-view``).
 """
 
@@ -33,9 +33,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     f.add_argument("-o", "--output", required=True, type=Path, metavar="FIGDIR", help="output folder")
     f.add_argument("--side-view", action="append", default=[], metavar="LABEL=LAS",
                    help="a simulated tree cloud for figure 13 (repeat, in panel order)")
-    f.add_argument("--results", type=Path, default=None, metavar="DIR",
-                   help="workflow results folder: figure 13 shows the tree with the most reference points, "
-                        "scaled vs fixed_0.25 (DIR/{plot}/{method}/{scenario}/trees.laz, field tree_id)")
+    f.add_argument("--tree-cloud", action="append", default=[], metavar="PLOT/SOURCE/SCENARIO=LAS",
+                   help="a tree cloud (field tree_id) of a method or the reference (repeat): figure 13 shows "
+                        "the tree with the most reference points, scaled vs fixed_0.25, from these files")
     f.add_argument("--ground-z", type=float, default=0.0, help="terrain height of the side views (default 0)")
     f.add_argument("--tree-field", default=None, help="attribute selecting the tree in the side-view clouds")
     f.add_argument("--tree-id", type=float, default=None, help="value of --tree-field to keep")
@@ -56,6 +56,20 @@ def _side_views(items: list[str]) -> dict:
     return out
 
 
+def _tree_clouds(items: list[str]) -> dict:
+    """``PLOT/SOURCE/SCENARIO=PATH`` items → {(plot, source, scenario): path}."""
+    out = {}
+    for it in items:
+        key, sep, path = it.partition("=")
+        parts = tuple(key.split("/"))
+        if not sep or not path or len(parts) != 3 or not all(parts):
+            raise ConfigError(f"--tree-cloud: expected PLOT/SOURCE/SCENARIO=PATH, got {it!r}")
+        if parts in out:
+            raise ConfigError(f"--tree-cloud: {key!r} given twice")
+        out[parts] = Path(path)
+    return out
+
+
 def run_figures(args) -> int:
     """Execute ``vlsforest report figures``; return 0."""
     from vlsforest.report.figures import make_figures, side_view_selection
@@ -71,10 +85,10 @@ def run_figures(args) -> int:
     vc = load_voxel_counts(args.voxel_counts)
     side = dict(side_views=_side_views(args.side_view) or None, ground_z=args.ground_z, tree_field=args.tree_field,
                 tree_id=args.tree_id)
-    if args.results is not None:
+    if args.tree_cloud:
         if side["side_views"]:
-            raise ConfigError("--results: give either --results or --side-view, not both")
-        sel = side_view_selection(metrics, args.results)
+            raise ConfigError("--tree-cloud: give either --tree-cloud or --side-view, not both")
+        sel = side_view_selection(metrics, _tree_clouds(args.tree_cloud))
         if sel is None:
             print("vlsforest report figures: warning: no simulated tree clouds found for figure 13; skipped",
                   file=sys.stderr)

@@ -1,9 +1,11 @@
 """``vlsforest stats``: simulated vs reference comparison tables and ``findings.md``.
 
 ``vlsforest stats --metrics tree_metrics.csv --voxel-counts voxel_counts.csv --sim-times
-sim_times.csv -o OUTDIR [--seed N] [--n-boot 2000]`` writes ``errors.csv``,
-``summary_by_species.csv``, ``tests.csv``, ``multireturn_ttest.csv``, ``table5.csv`` and
-``findings.md`` (see :mod:`vlsforest.stats`). Same inputs and seed give the same bytes.
+sim_times.csv (-o OUTDIR | --out-errors CSV --out-summary CSV --out-tests CSV --out-multireturn CSV
+--out-table5 CSV --out-findings MD) [--seed N] [--n-boot 2000]`` writes the error table, the
+summary by species, the tests, the multiple-return t-test, Table 5 and the findings (see
+:mod:`vlsforest.stats`): each to its ``--out-…`` file, or with ``-o`` under the names of
+:data:`vlsforest.stats.STATS_FILES` in OUTDIR. Same inputs and seed give the same bytes.
 """
 
 from __future__ import annotations
@@ -12,6 +14,17 @@ import argparse
 from pathlib import Path
 
 from vlsforest.errors import ConfigError
+
+
+#: (key of vlsforest.stats.STATS_FILES, option, what the file holds)
+OUT_OPTIONS = (
+    ("errors", "--out-errors", "per tree × method × scenario × metric error table (CSV)"),
+    ("summary_by_species", "--out-summary", "summary by species with bootstrap CIs (CSV)"),
+    ("tests", "--out-tests", "paired tests (CSV)"),
+    ("multireturn_ttest", "--out-multireturn", "conifer-vs-broadleaf multiple-return t-test (CSV)"),
+    ("table5", "--out-table5", "Table 5 as numbers (CSV)"),
+    ("findings", "--out-findings", "findings (Markdown)"),
+)
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -28,7 +41,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--metrics", required=True, type=Path, metavar="CSV", help="tree_metrics.csv")
     p.add_argument("--voxel-counts", required=True, type=Path, metavar="CSV", help="voxel_counts.csv")
     p.add_argument("--sim-times", required=True, type=Path, metavar="CSV", help="sim_times.csv")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUTDIR", help="output folder")
+    p.add_argument("-o", "--output", type=Path, metavar="OUTDIR",
+                   help="output folder: the files not named by an --out-… option go there, under their standard names")
+    for key, option, what in OUT_OPTIONS:
+        p.add_argument(option, type=Path, dest=f"out_{key}", metavar="FILE", help=f"where the {what} goes")
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--n-boot", type=int, default=2000, help="bootstrap resamples (default 2000, at least 100)")
     p.set_defaults(func=run)
@@ -37,13 +53,19 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     """Execute ``vlsforest stats`` with parsed ``args``; return 0."""
-    from vlsforest.stats import write_stats
+    from vlsforest.stats import STATS_FILES, write_stats
 
     if args.n_boot < 100:
         raise ConfigError(f"--n-boot: must be at least 100, got {args.n_boot}")
     if args.seed < 0:
         raise ConfigError(f"--seed: must be ≥ 0, got {args.seed}")
-    paths = write_stats(args.metrics, args.voxel_counts, args.sim_times, args.output,
+    outputs = {}
+    for key, option, _ in OUT_OPTIONS:
+        path = getattr(args, f"out_{key}")
+        if path is None and args.output is None:
+            raise ConfigError(f"{option}: missing (or give -o OUTDIR)")
+        outputs[key] = path if path is not None else args.output / STATS_FILES[key]
+    paths = write_stats(args.metrics, args.voxel_counts, args.sim_times, outputs,
                         seed=args.seed, n_boot=args.n_boot)
-    print(f"vlsforest stats: {len(paths)} files -> {args.output}")
+    print(f"vlsforest stats: {len(paths)} files -> {', '.join(str(p) for p in paths.values())}")
     return 0

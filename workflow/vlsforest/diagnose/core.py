@@ -74,6 +74,7 @@ TIE_RESOLVE = 0.05      # a tie is broken only if the separating observables dif
 DOMINANT_VOTE = 0.5     # a fit whose one observable carries more of the weight "rests on" it (reported)
 MIN_EV = 0.05           # a candidate must explain at least this share of the mean residual
 #                         (the reconstruction error of the voxel model is always there beside it)
+MAX_EFFECTS = 2         # effects accepted one after another at most (stages of the attribution)
 #: default of a plot's ``margin`` (m): the diagnosis traces the pulses that enter the trees'
 #: observed region ± this; the workflow's ``diagnosis.region_margin_m`` falls back to it too
 REGION_MARGIN_M = 1.0
@@ -103,12 +104,8 @@ class Setup:
     seed: int = 0
     workers: int = 2
     grid: int = 7
-    max_effects: int = 2
     #: whether ``candidates`` was given (else: the whole library, less what the scenes cannot model)
     candidates_given: bool = False
-    #: explained fraction in the ``diagonal`` metric (1 / across-tree variance per observable) or
-    #: the ``whitened`` one (shrunk across-tree correlation; experimental, see the README)
-    metric: str = "diagonal"
     #: sub-ray rings of the diagnosis' own simulations (None: the survey's). Footprint fits are
     #: biased when the simulation samples the beam more coarsely than the real beam is (fewer
     #: sub-rays split fewer echoes, so a wider beam is fitted); see the README "Diagnosis"
@@ -132,8 +129,6 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         seed: 0
         folds: 3                      # k-fold across trees
         candidates: [range_noise, …]  # default: the whole library
-        metric: diagonal              # or whitened: explained fractions in the metric of the
-                                      # residuals' shrunk across-tree correlation (experimental)
         beam_sample_quality: 4        # sub-ray rings of the diagnosis' simulations (default: the
                                       # survey's); finer than the study's for footprint fits
         realisations: 3               # further draws of an accepted trajectory-noise fit's process
@@ -164,8 +159,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
             raise ConfigError(f"{path}: invalid YAML: {exc}") from None
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
-    known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid", "max_effects",
-             "metric", "beam_sample_quality", "realisations"}
+    known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid",
+             "beam_sample_quality", "realisations"}
     for k in d:
         if k not in known:
             raise ConfigError(f"{path}: unknown key {k!r} (known: {', '.join(sorted(known))})")
@@ -201,9 +196,6 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     folds = d.get("folds", 3)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ConfigError(f"{path}: folds must be an integer ≥ 2, got {folds!r}")
-    metric = d.get("metric", "diagonal")
-    if metric not in ("diagonal", "whitened"):
-        raise ConfigError(f"{path}: metric must be diagonal or whitened, got {metric!r}")
     q = d.get("beam_sample_quality")
     if q is not None and (isinstance(q, bool) or not isinstance(q, int) or q < 1):
         raise ConfigError(f"{path}: beam_sample_quality must be an integer ≥ 1, got {q!r}")
@@ -214,8 +206,8 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"{path}: workers must be an integer ≥ 1, got {workers!r}")
     return Setup(scen, out, list(cands), folds, int(d.get("seed", 0)), workers,
-                 int(d.get("grid", 7)), int(d.get("max_effects", 2)), candidates_given=bool(d.get("candidates")),
-                 metric=metric, beam_sample_quality=q, realisations=nr)
+                 int(d.get("grid", 7)), candidates_given=bool(d.get("candidates")),
+                 beam_sample_quality=q, realisations=nr)
 
 
 # ------------------------------------------------------------------------------------ simulation
@@ -536,8 +528,7 @@ def _grid(par: lib.Param, lo: float, hi: float, base: float, n: int) -> np.ndarr
 
 
 # ------------------------------------------------------------------------------------ the steps
-def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray, metric: str = "diagonal",
-               last: bool = True):
+def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.ndarray, last: bool = True):
     """Signatures, projections, scores and groups of every candidate (relative to ``base``).
 
     Unless this is the ``last`` stage, the candidates' traces go to disk when they leave memory:
@@ -546,13 +537,7 @@ def _attribute(study: _Study, base: dict, cands: list, D0: np.ndarray, w: np.nda
     tracing them.
     """
     rbar = np.nanmean(D0, axis=0)
-    if metric == "whitened":
-        sd, R, _ = st.shrunk_correlation(D0)
-
-        def project(r, J, ww):
-            return st.project_whitened(r, J, ww, sd, R)
-    else:
-        project = st.project
+    project = st.project
     S0 = study.sim(base).reindex(study.real.index).to_numpy(float)
     steps = {c.name: c.step(c.current(study.survey, base), study.survey) for c in cands}
     study.keep([_merge(base, c.name, steps[c.name]) for c in cands], spill=not last)
@@ -847,9 +832,9 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
     current_D = D0
     final_D = D0  # the held-out residuals after the last accepted effect
     remaining = list(cands)
-    for stage in range(setup.max_effects if significant else 0):
-        last = stage + 1 >= setup.max_effects or len(remaining) < 2
-        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w, setup.metric, last=last)
+    for stage in range(MAX_EFFECTS if significant else 0):
+        last = stage + 1 >= MAX_EFFECTS or len(remaining) < 2
+        ranked, sigs, cosm = _attribute(study, base, remaining, current_D, w, last=last)
         ranked, tie = _tie_break(ranked, sigs, cosm, current_D, w)
         rounds.append({"stage": stage + 1, "ranking": [{k: (round(v, 4) if isinstance(v, float) else v)
                                                          for k, v in r.items()} for r in ranked],
@@ -983,7 +968,7 @@ def _diagnose(setup: Setup, log, spill_dir) -> dict:
                            "seconds": round(time.perf_counter() - t0 - cost["seconds"], 1)}}
     rep = {
         "scenario": setup.scenario,
-        "metric": setup.metric,
+        "metric": "diagonal",  # explained fractions weigh each observable by 1 / its across-tree variance
         "plots": [p.name for p in setup.plots],
         "n_trees": n_trees,
         "significant_mismatch": significant,

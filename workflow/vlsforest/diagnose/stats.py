@@ -126,54 +126,6 @@ def project(rbar: np.ndarray, J: np.ndarray, w: np.ndarray):
     return a, ev, float(np.sum(ww * j * r)) / np.sqrt(jj * rr)
 
 
-def shrunk_correlation(D: np.ndarray):
-    """Across-tree spread and Ledoit–Wolf shrunk correlation of the per-tree residuals ``D``.
-
-    Observables are standardised (missing values count as the mean), their sample correlation is
-    shrunk towards the identity with the Ledoit–Wolf (2004) intensity.
-
-    Returns
-    -------
-    (sd, R, shrinkage)
-    """
-    X = np.where(np.isfinite(D), D, np.nan)
-    n, p = X.shape
-    if n < 3:
-        return np.ones(p), np.eye(p), 1.0
-    with np.errstate(invalid="ignore"):
-        mu = np.nanmean(X, axis=0)
-        sd = np.nanstd(X, axis=0, ddof=1)
-    good = np.isfinite(sd) & (sd > 0)
-    Z = np.where(np.isfinite(X) & good, (X - mu) / np.where(good, sd, 1.0), 0.0)
-    S = Z.T @ Z / n
-    m = np.trace(S) / p
-    d2 = float(np.sum((S - m * np.eye(p)) ** 2)) / p
-    b2 = float(sum(np.sum((np.outer(z, z) - S) ** 2) for z in Z)) / n**2 / p
-    lam = min(b2, d2) / d2 if d2 > 0 else 1.0
-    R = (1 - lam) * S + lam * m * np.eye(p)
-    R[~good, :] = 0.0
-    R[:, ~good] = 0.0
-    R[~good, ~good] = 1.0
-    return np.where(good, sd, np.nan), R, float(lam)
-
-
-def project_whitened(rbar: np.ndarray, J: np.ndarray, w: np.ndarray, sd: np.ndarray, R: np.ndarray):
-    """:func:`project` in the metric of the residuals' shrunk correlation (see
-    :func:`shrunk_correlation`): correlated observables — several views of one property — count
-    once, not once each. Observables with ``w == 0`` or missing values are left out.
-    """
-    ok = np.isfinite(rbar) & np.isfinite(J) & (w > 0) & np.isfinite(sd)
-    if not ok.any():
-        return 0.0, 0.0, 0.0
-    P = np.linalg.pinv(R[np.ix_(ok, ok)])
-    r, j = rbar[ok] / sd[ok], J[ok] / sd[ok]
-    jpj, rpr, jpr = float(j @ P @ j), float(r @ P @ r), float(j @ P @ r)
-    if jpj <= 0 or rpr <= 0:
-        return 0.0, 0.0, 0.0
-    a = jpr / jpj
-    return a, jpr * jpr / (jpj * rpr), jpr / np.sqrt(jpj * rpr)
-
-
 def cosine(J1: np.ndarray, J2: np.ndarray, w: np.ndarray) -> float:
     """Cosine of two signatures in the weighted metric."""
     ok = np.isfinite(J1) & np.isfinite(J2) & (w > 0)

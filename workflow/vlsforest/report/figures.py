@@ -504,21 +504,30 @@ def fig_voxels_vs_error(errors: pd.DataFrame, voxel_counts: pd.DataFrame, out,
         return _save(fig, out)
 
 
-def side_view_selection(metrics: pd.DataFrame, results_dir, *, methods=("scaled", "fixed_0.25"),
+def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=("scaled", "fixed_0.25"),
                         scenario: str = "uls", tree_field: str = "tree_id"):
-    """Pick the tree and clouds of figure 13 from a workflow results folder.
+    """Pick the tree and clouds of figure 13 from the tree clouds given.
 
     The tree is the one with the most reference points in ``scenario`` (ties: first plot and
-    tree id in sort order); its clouds are ``results_dir/{plot}/{method}/{scenario}/trees.laz``
-    for the first two of ``methods`` present in ``metrics`` (else the first and the last
-    simulated method). The ground height is recovered from the reference cloud of that tree as
+    tree id in sort order); its clouds are those of ``clouds`` for its plot and ``scenario`` and
+    the first two of ``methods`` present in ``metrics`` (else the first and the last simulated
+    method). The ground height is recovered from the reference cloud of that tree as
     ``min(z) − hmin``.
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame
+        The tree metrics table.
+    clouds : mapping
+        ``(plot, source, scenario)`` → path of that source's tree cloud (LAS/LAZ with the field
+        ``tree_field``); ``source`` is a method or ``reference``. Only these files are read.
 
     Returns
     -------
     dict or None
         Keyword arguments of :func:`fig13_side_views` (``clouds, ground_z, tree_field,
-        tree_id``), or None when a needed cloud is missing (figure 13 is then skipped).
+        tree_id``), or None when a needed cloud is not given or absent (figure 13 is then
+        skipped).
     """
     from vlsforest.io.las import read_las
 
@@ -535,9 +544,12 @@ def side_view_selection(metrics: pd.DataFrame, results_dir, *, methods=("scaled"
         return None
     ref = ref.sort_values(["n_points", "plot", "tree_id"], ascending=[False, True, True], kind="stable")
     plot, tree = ref.iloc[0]["plot"], ref.iloc[0]["tree_id"]
-    root = Path(results_dir)
-    paths = {m: root / plot / m / scenario / "trees.laz" for m in chosen}
-    ref_path = root / plot / REFERENCE / scenario / "trees.laz"
+    paths = {m: clouds.get((plot, m, scenario)) for m in chosen}
+    ref_path = clouds.get((plot, REFERENCE, scenario))
+    if ref_path is None or any(p is None for p in paths.values()):
+        return None
+    paths = {m: Path(p) for m, p in paths.items()}
+    ref_path = Path(ref_path)
     if not ref_path.is_file() or not all(p.is_file() for p in paths.values()):
         return None
     try:

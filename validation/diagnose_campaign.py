@@ -1,4 +1,4 @@
-"""Benchmark: the physics diagnosis on concealed effects (issue 8's proof campaign).
+"""Validation: the physics diagnosis on concealed effects (the diagnosis' proof campaign).
 
 For every forest seed the quick workflow is run once (TLS → segmentation → PAD → voxel scenes, the
 tool's view of the forest); then for every case the quick forest's ALS/ULS is re-recorded with one
@@ -8,16 +8,19 @@ attribution.
 
 Prints per run: the verdict, the top-ranked candidate and its group, the fitted value vs the
 hidden one, the share of the recoverable held-out error removed, traced simulations and seconds;
-then the pass rates of the issue's criteria. Writes ``--out`` (CSV).
+then the pass rates of the diagnosis' criteria. Appends one JSON row per run to ``--out``
+(default ``validation/results/diagnose_campaign.jsonl``, the campaign's current results; runs
+already in it are skipped).
 
-    python benchmarks/bench_diagnose.py --seeds 0 1 2 --cases all --workdir /tmp/diag
-    python benchmarks/bench_diagnose.py --seeds 0 1 2 3 4 5 6 7 8 9 --cases null   # 10 null runs
-    python benchmarks/bench_diagnose.py --seeds 2 --cases null --real-quality 5 --sim-quality 5 --truth-scene
+    python validation/diagnose_campaign.py --seeds 0 1 2 --cases all --workdir /tmp/diag
+    python validation/diagnose_campaign.py --seeds 0 1 2 3 4 5 6 7 8 9 --cases null   # 10 null runs
+    python validation/diagnose_campaign.py --seeds 2 --cases null --real-quality 5 --sim-quality 5
+    python validation/diagnose_campaign.py --summary      # the criteria over the results file
 
-One case on 2 cores: 46–435 s and 4–20 traced simulations (session 7), plus ≈ 4 min per forest
-seed for the quick workflow and ≈ 1 min per case to record; the campaign (3 seeds × 6 cases,
-two effects, out of library, 10 null runs) ≈ 2 h. ``--summary`` prints the criteria over an
-existing ``--out`` file.
+One case on 2 cores: 46–435 s and 4–20 traced simulations, plus ≈ 4 min per forest seed for the
+quick workflow and ≈ 1 min per case to record; the campaign (3 seeds × 6 cases, two effects, out
+of library, 10 null runs) ≈ 2 h. A run of changed code replaces its rows: delete the rows of the
+cases re-run (the file holds current results only; git keeps the earlier ones).
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
+
+#: the campaign's current results (one JSON row per run)
+RESULTS = REPO / "validation" / "results" / "diagnose_campaign.jsonl"
 
 #: the simulation's own physics (what it models) + finer beam sampling in the "real" recording
 BASE = {"als": {"beam_sample_quality": 4}, "uls": {"beam_sample_quality": 4},
@@ -93,7 +99,7 @@ def _group_fit_error(case: str, fitted: dict):
 
 
 def add_case_arguments(ap) -> None:
-    """The arguments that name a case this benchmark has run (for the probes that re-read it)."""
+    """The arguments that name a case this campaign has run (for tools that re-read it)."""
     ap.add_argument("--workdir", type=Path, required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--case", default="elliptical_footprint")
@@ -154,7 +160,7 @@ def _truth_scene(seed: int):
     return plot_scene(plot, generate_plot_trees(plot), "uls", {})
 
 
-def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim_quality: int | None = None,
+def _run_case(seed: int, case: str, workdir: Path, sim_quality: int | None = None,
               truth_scene: bool = False) -> dict:
     """Diagnose one case blind; return its row (criteria measured against the hidden values).
 
@@ -179,7 +185,6 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
         setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
         setup.candidates_given = True
     setup.oracle = CASES[case][1] or None
-    setup.metric = metric
     from_yaml = Scene.__dict__["from_yaml"]
     if truth_scene:  # every scene the diagnosis loads is the truth (tls_occlusion is then left out)
         truth = _truth_scene(seed)
@@ -191,7 +196,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
     finally:
         Scene.from_yaml = from_yaml
     sq = ("" if sim_quality is None else f"_sim{sim_quality}") + ("_truth" if truth_scene else "")
-    (workdir / f"seed{seed}" / (case + _tag()) / f"diagnosis{'' if metric == 'diagonal' else '_' + metric}{sq}.json").write_text(json.dumps(rep, indent=1))
+    (workdir / f"seed{seed}" / (case + _tag()) / f"diagnosis{sq}.json").write_text(json.dumps(rep, indent=1))
     top = rep["effects"][0] if rep["effects"] else {}
     hidden = CASES[case][1]
     fit_err = {}
@@ -223,7 +228,7 @@ def _run_case(seed: int, case: str, workdir: Path, metric: str = "diagonal", sim
     if recov and acc and o.get("error_fitted") is not None:
         # share of the recoverable error (given − told the truth) that the accepted fits remove
         removed = (o["error_given"] - o["error_fitted"]) / recov
-    return {"seed": seed, "case": case, "metric": metric, "real_quality": BASE["uls"]["beam_sample_quality"],
+    return {"seed": seed, "case": case, "real_quality": BASE["uls"]["beam_sample_quality"],
             "sim_quality": sim_quality, **({"sim_scene": "truth"} if truth_scene else {}), "verdict": rep["verdict"][:160], "significant": rep["significant_mismatch"],
             "top": top.get("name"), "top_group": top.get("group"),
             "top_ev": top.get("explained_fraction"), "second": (rep["effects"][1]["name"] if len(rep["effects"]) > 1 else None),
@@ -292,7 +297,7 @@ def summarise(df) -> None:
                  f"equal-solid-angle divergence)" if group_fit.any() else ""))
         rr = eff.recoverable_removed.dropna()
         print(f"≥ 50 % of the recoverable held-out error removed: {(rr >= 0.5).sum()} of {len(eff)} runs")
-        if "ci" in eff:  # rows since session 27
+        if "ci" in eff:  # rows that record the fitted CI
             held = [c["holds_hidden"] for x in eff.ci.dropna() for c in json.loads(x).values()]
             if held:
                 print(f"hidden value inside the fitted CI: {sum(held)} of {len(held)} fits that report one")
@@ -312,13 +317,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--cases", nargs="+", default=["all"])
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vlsforest-bench-diagnose"))
-    ap.add_argument("--out", type=Path, default=None,
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vlsforest-diagnose-campaign"))
+    ap.add_argument("--out", type=Path, default=RESULTS,
                     help="JSON-lines file: one row per run, appended as runs finish; runs already in "
-                         "it are skipped (default WORKDIR/runs.jsonl)")
+                         "it are skipped (default: %(default)s)")
     ap.add_argument("--summary", action="store_true", help="only print the criteria over --out")
-    ap.add_argument("--metric", choices=("diagonal", "whitened"), default="diagonal",
-                    help="the diagnosis' attribution metric (runs are kept apart by metric)")
     ap.add_argument("--real-quality", type=int, default=REAL_QUALITY,
                     help="beam sample quality of the \"real\" ULS (BASE: 4, i.e. 37 sub-rays; the "
                          "simulation's is 3, 19 sub-rays); runs are kept apart by it")
@@ -333,27 +336,25 @@ def main(argv=None) -> int:
     BASE["uls"]["beam_sample_quality"] = a.real_quality
     import pandas as pd
 
-    out = a.out or a.workdir / "runs.jsonl"
+    out = a.out
     done = [json.loads(x) for x in out.read_text().splitlines() if x.strip()] if out.is_file() else []
-    # rows marked "superseded" (kept for the record, e.g. runs before a physics fix) do not count
-    done = [r for r in done if not r.get("superseded")]
     if not a.summary:
         cases = list(CASES) if a.cases == ["all"] else a.cases
         out.parent.mkdir(parents=True, exist_ok=True)
-        have = {(r["seed"], r["case"], r.get("metric", "diagonal"), r.get("real_quality", REAL_QUALITY),
-                 r.get("sim_quality"), r.get("sim_scene", "voxels")) for r in done}
+        have = {(r["seed"], r["case"], r.get("real_quality", REAL_QUALITY), r.get("sim_quality"),
+                 r.get("sim_scene", "voxels")) for r in done}
         scene = "truth" if a.truth_scene else "voxels"
         for seed in a.seeds:
             for case in cases:
-                if (seed, case, a.metric, a.real_quality, a.sim_quality, scene) in have:
+                if (seed, case, a.real_quality, a.sim_quality, scene) in have:
                     continue
-                row = _run_case(seed, case, a.workdir, a.metric, a.sim_quality, a.truth_scene)
+                row = _run_case(seed, case, a.workdir, a.sim_quality, a.truth_scene)
                 print(json.dumps(row), flush=True)
                 with out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
-    done = [r for r in done if r.get("metric", "diagonal") == a.metric
-            and r.get("real_quality", REAL_QUALITY) == a.real_quality and r.get("sim_quality") == a.sim_quality
+    done = [r for r in done if r.get("real_quality", REAL_QUALITY) == a.real_quality
+            and r.get("sim_quality") == a.sim_quality
             and r.get("sim_scene", "voxels") == ("truth" if a.truth_scene else "voxels")]
     if done:
         summarise(pd.DataFrame(done))

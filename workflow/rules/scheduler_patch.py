@@ -1,0 +1,107 @@
+"""Opt-in patch of Snakemake's job scheduler: at most one pending re-evaluation timer.
+
+Off by default. ``VLSFOREST_SCHEDULER_PATCH=1`` in the environment of ``snakemake`` switches it on
+(workflow/rules/common.smk calls :func:`apply_if_enabled`). It replaces a private method of
+Snakemake (``JobScheduler._schedule_reevalutation``, spelled so upstream), so it is applied only
+where that method is exactly the one it was written against (:data:`EXPECTED_SOURCE`, Snakemake
+9.x); anywhere else it warns and leaves Snakemake as it is. ``tests/test_scheduler_patch.py``
+fails when the installed Snakemake's method differs.
+
+Why: with its default ``--max-jobs-per-timespan 100/1s``, Snakemake's scheduler ends every
+scheduling pass by starting a 1 s timer whose firing triggers another pass, which starts the next
+timer. Every pass triggered by a job's start or end therefore begins one more such chain: near
+the end of a run of N jobs the scheduler makes about N passes a second, each re-evaluating the
+params and resources of every ready job (on the default study about a third of a core for
+Snakemake's own process). No public setting avoids it: the limiter cannot be switched off from
+the command line, and a long timespan leaves non-daemon timer threads that keep Snakemake alive
+after the run. One pending timer keeps what the timer is for (a pass within the timespan after
+any pass, so a rate-limited job still starts) and the chains no longer pile up. Results do not
+depend on it.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import textwrap
+import threading
+import warnings
+
+#: the environment variable that switches the patch on ("1")
+ENV_VAR = "VLSFOREST_SCHEDULER_PATCH"
+
+#: Snakemake's method as the patch expects it (dedented source)
+EXPECTED_SOURCE = '''\
+def _schedule_reevalutation(self, delay: int) -> None:
+    threading.Timer(
+        delay,
+        lambda: self._open_jobs.release(),
+    ).start()
+'''
+
+
+def enabled(environ=None) -> bool:
+    """Whether :data:`ENV_VAR` asks for the patch (``"1"``)."""
+    return (os.environ if environ is None else environ).get(ENV_VAR, "") == "1"
+
+
+def compatible(scheduler_class=None) -> bool:
+    """Whether Snakemake's ``JobScheduler`` has the method the patch replaces, unpatched and as
+    :data:`EXPECTED_SOURCE` writes it (a patched one counts as compatible)."""
+    if scheduler_class is None:
+        try:
+            from snakemake.scheduling.job_scheduler import JobScheduler as scheduler_class
+        except ImportError:
+            return False
+    method = getattr(scheduler_class, "_schedule_reevalutation", None)
+    if method is None:
+        return False
+    if getattr(method, "one_pending", False):
+        return True
+    try:
+        source = textwrap.dedent(inspect.getsource(method))
+    except (OSError, TypeError):
+        return False
+    return source == EXPECTED_SOURCE
+
+
+def _schedule_reevalutation(self, delay):
+    """Start a timer releasing one scheduling pass after ``delay`` s, unless one is pending."""
+    if getattr(self, "_vlsforest_reevaluation", None) is not None:
+        return  # a pass is already due within the timespan
+
+    def fire():
+        self._vlsforest_reevaluation = None  # before the pass it triggers asks for the next
+        self._open_jobs.release()
+
+    timer = threading.Timer(delay, fire)
+    timer.daemon = True
+    self._vlsforest_reevaluation = timer
+    timer.start()
+
+
+_schedule_reevalutation.one_pending = True
+
+
+def apply(scheduler_class=None) -> bool:
+    """Patch ``JobScheduler`` (or ``scheduler_class``) if :func:`compatible`; return whether the
+    patch is in place. An incompatible Snakemake gets a warning and no patch."""
+    if scheduler_class is None:
+        try:
+            from snakemake.scheduling.job_scheduler import JobScheduler as scheduler_class
+        except ImportError:
+            warnings.warn(f"{ENV_VAR}: Snakemake's JobScheduler not found; not patched", stacklevel=2)
+            return False
+    if not compatible(scheduler_class):
+        warnings.warn(
+            f"{ENV_VAR}: this Snakemake's JobScheduler._schedule_reevalutation is not the one the "
+            "patch was written for; not patched", stacklevel=2,
+        )
+        return False
+    scheduler_class._schedule_reevalutation = _schedule_reevalutation
+    return True
+
+
+def apply_if_enabled(environ=None) -> bool:
+    """:func:`apply` when :func:`enabled`; return whether the patch is in place."""
+    return apply() if enabled(environ) else False
