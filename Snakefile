@@ -47,7 +47,7 @@ include: "workflow/rules/stats.smk"
 include: "workflow/rules/diagnose.smk"
 
 
-# Voxel methods added as rule files (see README "Add a voxel method"): every rules/methods/*.smk
+# Voxel methods added as rule files (docs/tutorials/adding-a-method.md): every rules/methods/*.smk
 for _method_rules in sorted(Path(workflow.basedir, "workflow", "rules", "methods").glob("*.smk")):
 
     include: _method_rules

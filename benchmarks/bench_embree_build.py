@@ -10,7 +10,7 @@ how many hits differ. Each variant runs in its own process.
     python benchmarks/bench_embree_build.py --cubes 1000000 --rays 4000000
 
 The study-level effect (a leaf-level plot's ULS recording, a 0.05 m ULS simulation) is in the
-README, Performance.
+docs/performance.md.
 """
 
 from __future__ import annotations

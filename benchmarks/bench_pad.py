@@ -35,7 +35,8 @@ def _largest_plot(forest: Path) -> str:
 
 def main(argv=None) -> int:
     from vlsforest.io.vox import write_vox
-    from vlsforest.pad import accumulate, estimate_pad, grid_for_scans, load_tls_scans, pad_to_vox, validate_pad
+    from vlsforest.pad import accumulate, estimate_pad, grid_for_scans, load_tls_scans, pad_to_vox
+    from vlsforest.pad_validation import validate_pad
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("forest", type=Path)
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
 
             with pd.option_context("display.width", 200, "display.max_rows", 200):
                 print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
-        from vlsforest.pad.validate import median_abs_bias
+        from vlsforest.pad_validation import median_abs_bias
 
         capped = median_abs_bias(table, "bias_pct_capped")
         for est, m in median_abs_bias(table).items():

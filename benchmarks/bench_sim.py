@@ -199,7 +199,7 @@ def raw_cast(scene, survey, block_slots: int = 20000, repeat: int = 2):
         best = np.inf
         for _ in range(repeat):
             t4 = time.perf_counter()
-            t, part, _ = scene.trace(o, d)
+            t, part, _ = scene.trace(o, d, serial=True)  # as one worker traces
             best = min(best, time.perf_counter() - t4)
         out["t_pulses"] += t1 - t0
         out["t_cull"] += t2 - t1
@@ -274,8 +274,6 @@ def run_case(case: str, profile: bool = False, repeat: int = 2) -> dict:
     """Run one case: 1 worker pinned to one CPU + raw cast, then 2 workers. Returns the figures."""
     import numba
 
-    from vlsforest.sim import _voxelgrid
-
     cpus = sorted(os.sched_getaffinity(0))
     print(f"=== case {case}")
     t0 = time.perf_counter()
@@ -286,24 +284,21 @@ def run_case(case: str, profile: bool = False, repeat: int = 2) -> dict:
     print(f"  scanner {sc.name}: {sc.prf_hz / 1e3:.0f} kHz, {sc.scan_freq_hz:.0f} lines/s, ±{sc.scan_angle_deg:.0f}°, "
           f"BSQ {sc.beam_sample_quality}, window {sc.window_size_ns} ns; {survey.n_slots:,} pulse slots; "
           f"setup {t_setup:.1f} s; peak RSS after setup {_rss_gb():.2f} GB")
-    # warm-up over the tree, with the parallel and the serial grid kernel (numba compilation is
-    # cached on disk but loaded per process; the Embree BVH is built lazily per process)
+    # warm-up over the tree, with the serial (one worker) and the parallel grid kernel (numba
+    # compilation is cached on disk but loaded per process; the Embree BVH is built lazily per
+    # process)
     from vlsforest.sim import simulate
 
-    for serial in (False, True):
-        _voxelgrid.SERIAL = serial
-        w = simulate(scene, warm, seed=1, workers=1)
-    _voxelgrid.SERIAL = False
+    for workers in (2, 1):
+        w = simulate(scene, warm, seed=1, workers=workers)
     print(f"  warm-up: {w.timings['n_rays']:,} sub-rays, {w.timings['n_points']:,} points")
     res = dict(case=case, desc=desc, runs=[])
     with tempfile.TemporaryDirectory() as tmp:
         # ---- one worker on one CPU (numba threads and our grid kernel serial as well)
         os.sched_setaffinity(0, {cpus[0]})
         numba.set_num_threads(1)
-        _voxelgrid.SERIAL = True
-        r1 = _timed_run(scene, survey, 1, Path(tmp) / "w1.las", repeat, profile)
+        r1 = _timed_run(scene, survey, 1, Path(tmp) / "w1.las", repeat, profile)  # one worker: serial kernel
         raw = raw_cast(scene, survey, repeat=repeat)
-        _voxelgrid.SERIAL = False
         numba.set_num_threads(min(len(cpus), numba.config.NUMBA_NUM_THREADS))
         os.sched_setaffinity(0, set(cpus))
         r1["raw"] = raw

@@ -1,4 +1,4 @@
-"""Shared fixtures: a small virtual forest, recorded once per test session; test order.
+"""Shared fixtures: a small virtual forest, recorded once per test run; test order.
 
 The forest is the ``quick`` preset (plot ``Q1``, 4 targets, ~60 surrounding trees) recorded with
 the quick workflow's TLS settings (5 positions, 0.25° steps, no tilted scans) and the default
@@ -12,7 +12,7 @@ were spread over both workers; upstream: pytest-dev/pytest-xdist#1386, open), so
 one to each worker, then one more to each, then one at a time to whichever worker is free.
 :func:`pytest_collection_modifyitems` puts the three longest tests, marked ``early``, first: the
 diagnosis' region test and the SLURM run go to one worker, the diagnosis' hidden-threshold case to
-the other, and the short tests fill in behind them. Session fixtures (``quick_run``) are built
+the other, and the short tests fill in behind them. Run-wide fixtures (``quick_run``) are built
 once per worker that needs them.
 """
 

@@ -71,7 +71,7 @@ def test_uls_minus_als_has_the_real_signs(reference_metrics):
     assert (wide["cbh"] > 1.0).all().all()
 
 
-@pytest.mark.xfail(strict=True, reason="known since session 14 (README, 'vlsforest synth'): for 10 of the 15 spruce "
+@pytest.mark.xfail(strict=True, reason="the TLS reach (docs: limitations): for 10 of the 15 spruce "
                    "targets the TLS never reaches the top 0.7–3.5 m, so neither reference cloud holds the top and "
                    "the median ULS − ALS height is a coin flip (−0.004 m) instead of the real +0.24 m")
 def test_uls_minus_als_median_height_has_the_real_sign(reference_metrics):
@@ -82,7 +82,7 @@ def test_uls_minus_als_median_height_has_the_real_sign(reference_metrics):
 
 def test_segmentation_of_the_targets_meets_the_issue_bar(default_run):
     """Issue 4 on the default forest: targets found with F1 ≥ 0.95 (within 0.5 m), mean target
-    point IoU ≥ 0.90 over the 30 targets, median DBH error ≤ 2 cm (session 14: 1.00, 0.912, ≤ 1.1 cm)."""
+    point IoU ≥ 0.90 over the 30 targets, median DBH error ≤ 2 cm."""
     from vlsforest.io.las import read_las
     from vlsforest.segment import match_stems
 

@@ -98,7 +98,7 @@ def test_weighted_median_interpolates_between_votes_and_does_not_jump_at_a_near_
     assert wm([1.0, 3.0], [9.0, 1.0]) == pytest.approx(1.2)
     assert wm([1.0, 3.0], [1.0, 9.0]) == pytest.approx(2.8)
     assert wm([5.0, 1.0, 3.0], [1.0, 1.0, 1.0]) == pytest.approx(3.0)  # odd count: the middle vote
-    # near 50:50 (session 38's seed-0 range noise: 50.4 % at 0.0617, 49.1 % at 0.0598, 0.5 % more)
+    # near 50:50 (two voters of 50.4 % at 0.0617 and 49.1 % at 0.0598, 0.5 % more)
     a = wm([0.0598, 0.0617, 0.0700], [49.1, 50.4, 0.5])
     b = wm([0.0598, 0.0617, 0.0700], [50.4, 49.1, 0.5])
     assert 0.0598 < b < a < 0.0617 and a - b < 0.1 * (0.0617 - 0.0598)
@@ -857,8 +857,8 @@ def test_workflow_schedules_the_diagnosis_and_checks_its_config(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ the logic
-#: the observables of the first :class:`_LinearStudy` (session 25), in their order (``ground_sd_nadir``
-#: in the slot of ``ground_sd_local``, which session 37 split into it and ``ground_sd_growth``)
+#: the observables whose signatures :class:`_LinearStudy` draws first, in this order (the others
+#: from a stream of their own, so that adding an observable leaves these draws as they are)
 _STANDIN_FEATURES = (
     "height", "hmean", "p10", "p50", "p90", "p99", "cbh", "cpa", "multi_return_pct",
     "returns_per_pulse", "rn1_share", "rn2_share", "rn3plus_share", "first_p50", "first_p90", "first_max",

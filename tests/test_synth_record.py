@@ -104,7 +104,7 @@ def test_species_multi_return_contrast_and_als_uls_signs(forest):
     assert len(common) >= 20
     d = out["uls"].loc[common] - out["als"].loc[common]
     # the real Bretten ALS-vs-ULS disagreement (1,016 trees): ULS taller (+0.18 m) and with a
-    # lower CBH (−1.9 m) — reproduced; its smaller CPA (−1.5 m²) is not (see the README)
+    # lower CBH (−1.9 m) — reproduced; its smaller CPA (−1.5 m²) is not (docs/limitations.md)
     print(f"\nULS − ALS over {len(common)} trees: height {d['height'].mean():+.2f} m, "
           f"CBH {d['cbh'].mean():+.2f} m, CPA {d['cpa'].mean():+.2f} m²")
     assert d["height"].mean() > 0

@@ -523,7 +523,7 @@ def test_one_metre_region_margin_keeps_every_target_return(quick_run, scenario, 
     are those of a trace 10 m wider, bit for bit (the quick surveys draw no noise), from fewer
     traced sub-rays. Checked on the coarsest fixed cells (0.25 m), which reach furthest beyond
     the points, with each voxel back-end: `auto` may route a lattice to the other back-end
-    for fewer rays, and the two differ on rays that graze a cube edge (see the README)."""
+    for fewer rays, and the two differ on rays that graze a cube edge (docs/simulator.md, "Scenes and back ends")."""
     from vlsforest.domain.labels import object_ids
     from vlsforest.sim import Scene, load_survey, simulate
 

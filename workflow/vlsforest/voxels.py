@@ -31,7 +31,7 @@ Built-in kinds:
     (``flagged: drop``); the count of such cells is reported.
 
 A new method is one function registered here (or in a module the workflow imports), one rule
-file and one config entry — see the README section "Add a voxel method".
+file and one config entry — see docs/tutorials/adding-a-method.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-# Example of a voxel method added as one rule file + one config entry (README "Add a voxel
-# method"): PAD-scaled cubes whose *side* grows linearly with PAD (α = 1) instead of their face
+# Example of a voxel method added as one rule file + one config entry
+# (docs/tutorials/adding-a-method.md): PAD-scaled cubes whose *side* grows linearly with PAD (α = 1) instead of their face
 # area (the study's α = 0.5). The method's function is in linear_pad.py beside this file.
 # Config entry:
 #

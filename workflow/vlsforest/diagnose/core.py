@@ -1,6 +1,6 @@
 """The diagnosis: locate a sim-vs-real mismatch, attribute it, fit the winner, check on held-out trees.
 
-Steps (see the README section "Diagnosis"):
+Steps (see docs/diagnosis.md):
 
 1. **Locate** — per tree, real minus simulated observables (:mod:`.features`); per observable the
    mean residual with a bootstrap CI, Wilcoxon p and Benjamini–Hochberg q; a global sign-flip
@@ -108,7 +108,7 @@ class Setup:
     candidates_given: bool = False
     #: sub-ray rings of the diagnosis' own simulations (None: the survey's). Footprint fits are
     #: biased when the simulation samples the beam more coarsely than the real beam is (fewer
-    #: sub-rays split fewer echoes, so a wider beam is fitted); see the README "Diagnosis"
+    #: sub-rays split fewer echoes, so a wider beam is fitted); see docs/diagnosis.md
     beam_sample_quality: int | None = None
     #: further draws of a random candidate's process simulated at its fitted value, whose
     #: scatter widens its CI (one trace each; 0: no draws, the CI holds the trees' bootstrap and

@@ -35,8 +35,7 @@ Observables (columns of :func:`tree_features`):
   along the scan unless turned. Both strata's ground echoes are also pulled by the vegetation
   that shares their pulses (see below), which a voxel reconstruction gets wrong; that mixing
   scales the roughness of both strata alike to first order and cancels in the ratio, as it did
-  not in the all-angle roughness (``ground_sd_local``) these two replace (README, "Diagnosis",
-  session 37);
+  does not in an all-angle roughness;
 * ``ground_dz_lines`` — median absolute offset between the ground of two flight lines in the
   same 1 m cell (trajectory errors move whole strips);
 * ``ground_sd_single``, ``ground_dz_single`` — the roughness (all scan angles) and the offset

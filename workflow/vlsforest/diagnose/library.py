@@ -312,7 +312,7 @@ def occlusion_corrected(model, top_gain: float):
 
     Parameters
     ----------
-    model : vlsforest.voxels.VoxelModel
+    model : vlsforest.io.voxel_model.VoxelModel
         A model with per-cube sizes (``half``) — fixed-size models have no PAD to correct.
     top_gain : float
         Relative PAD increase at the crown top (≥ 0).
@@ -321,7 +321,7 @@ def occlusion_corrected(model, top_gain: float):
     -------
     VoxelModel
     """
-    from vlsforest.voxels import VoxelModel
+    from vlsforest.io.voxel_model import VoxelModel
 
     if model.half is None:
         raise ConfigError("tls_occlusion corrects PAD-scaled cubes; this voxel model has fixed-size cubes")

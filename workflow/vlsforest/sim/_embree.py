@@ -18,12 +18,10 @@ Robust mode
 -----------
 ``RTC_SCENE_FLAG_ROBUST`` makes Embree avoid optimisations that lower arithmetic accuracy, so
 that fewer rays slip through a closed surface where they meet a shared edge or vertex. The
-simulator keeps it on by default (:data:`ROBUST_DEFAULT`, as embreex does). Measured in session
-31: rays aimed exactly at the vertices and edges of a closed icosphere slip through to its far
-side 168 times in 106,602 with it and 8,929 times without (``tests/test_sim_embree.py``); the
-ULS recording of P6 of the default forest (leaves as triangles, one worker) took 120.3 s with it
-and 101.3 s without, and without it 10 % of its 5.85 M points moved by more than 1 cm and 0.3 %
-by more than 5 cm. ``Scene(embree_robust=False)`` (scene file key ``embree_robust: false``)
+simulator keeps it on by default (:data:`ROBUST_DEFAULT`, as embreex does): rays aimed exactly
+at the vertices and edges of a closed icosphere slip through to its far side far more often
+without it (``tests/test_sim_embree.py``), and leaf-level recordings then move points by
+centimetres; without it tracing is faster. ``Scene(embree_robust=False)`` (scene file key ``embree_robust: false``)
 trades that accuracy for the time, e.g. for survey planning.
 """
 

@@ -68,11 +68,6 @@ from vlsforest.errors import ConfigError, InputDataError
 
 __all__ = ["VoxelGrid"]
 
-#: kernel of :meth:`VoxelGrid.trace` when its ``serial`` argument is None: the simulation
-#: engine sets it in forked worker processes, where numba's workqueue threading layer must not
-#: be used after a fork. Callers pass ``serial`` instead; this default goes once the engine does.
-SERIAL = False
-
 #: largest coarse array chosen automatically (entries, 4 bytes each).
 _AUTO_COARSE_MAX = 1 << 24
 #: largest coarse array accepted at all (1 GiB).
@@ -1150,7 +1145,7 @@ class VoxelGrid:
             raise InputDataError(f"voxel: index out of range [0, {self.n_voxels})")
         return np.full(v.shape, self._part_table[0], dtype=np.int32)
 
-    def trace(self, origins, dirs, tmax=None, serial: bool | None = None):
+    def trace(self, origins, dirs, tmax=None, serial: bool = False):
         """First hit of each ray ``origins + t * dirs``, ``0 <= t <= tmax``.
 
         Parameters
@@ -1162,7 +1157,7 @@ class VoxelGrid:
         serial : bool, optional
             True: trace with the single-threaded kernel (in a forked worker process, where
             numba's workqueue threading layer must not run, or when one CPU is asked for);
-            False: with the parallel kernel; None: as :data:`SERIAL` says.
+            False: with the parallel kernel.
 
         Returns
         -------
@@ -1198,8 +1193,6 @@ class VoxelGrid:
         out_vox = np.empty(m, dtype=np.int64)
         lo = self.origin + self._mins * self.cell_size
         nx, ny, nz = (int(x) for x in self._dims)
-        if serial is None:
-            serial = SERIAL
         kernel = _trace_kernel_serial if serial else _trace_kernel
         kernel(o, d, tm, lo, self.cell_size, nx, ny, nz, self.block_bits,
                self._nb[0], self._nb[1], self._wpb, self._coarse, self._masks,

@@ -25,7 +25,6 @@ modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² hal
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -149,6 +148,8 @@ class _Job:
         self.object_id = np.array([p.object_id for p in scene.parts] + [0], dtype=np.int32)
         self.classification = np.array([p.classification for p in scene.parts] + [0], dtype=np.uint8)
         self.labels = bool(getattr(scene, "has_labels", False))
+        #: trace voxel grids with the single-threaded kernel (set by _run_blocks)
+        self.serial = False
         self.max_offset = float(np.abs(self.pattern.offsets).max()) * np.sqrt(2.0)
         # without stored hits and with returns on the beam axis, detection runs fused with the
         # hit collection (detect_traced) instead of building the hit arrays
@@ -199,26 +200,6 @@ def _expected_rays(job: _Job, n_blocks: int, n_sample: int = 64) -> float:
     return traced / max(slots, 1) * survey.n_slots * job.pattern.n
 
 
-def _init_worker():
-    # numba's default (workqueue) threading layer is not fork-safe: workers trace serially
-    from vlsforest.sim import _voxelgrid
-
-    _voxelgrid.SERIAL = True
-
-
-@contextlib.contextmanager
-def _serial_grid():
-    """The voxel-grid kernel without numba threads inside the block, the setting restored after."""
-    from vlsforest.sim import _voxelgrid
-
-    prev = _voxelgrid.SERIAL
-    _voxelgrid.SERIAL = True
-    try:
-        yield
-    finally:
-        _voxelgrid.SERIAL = prev
-
-
 def _run_block(b: int):
     job = _JOB
     start = b * job.block_slots
@@ -246,13 +227,13 @@ def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
     workers' serial code on the first block that traces anything (its result is discarded; the
     workers redo it with the same random stream) and one ray through each voxel grid.
     """
-    with _serial_grid():
-        for b in range(min(n_blocks, max_blocks)):
-            if _run_block(b)[3] > 0:
-                break
-        for grid in getattr(job.scene, "grids", ()):
-            lo, hi = grid.bounds
-            grid.trace(np.array([0.5 * (lo + hi) + [0.0, 0.0, hi[2] - lo[2] + 1.0]]), np.array([[0.0, 0.0, -1.0]]))
+    for b in range(min(n_blocks, max_blocks)):
+        if _run_block(b)[3] > 0:
+            break
+    for grid in getattr(job.scene, "grids", ()):
+        lo, hi = grid.bounds
+        grid.trace(np.array([0.5 * (lo + hi) + [0.0, 0.0, hi[2] - lo[2] + 1.0]]), np.array([[0.0, 0.0, -1.0]]),
+                   serial=True)
 
 
 def _cast(job: _Job, origin, direction, scan_dir):
@@ -260,10 +241,10 @@ def _cast(job: _Job, origin, direction, scan_dir):
     pat = job.pattern
     if getattr(job.scene, "uses_embree", False):  # float32 rays straight into Embree's frame
         o32, d32 = subray_rays32(origin, direction, scan_dir, pat, job.scene.shift)
-        return job.scene.trace_local(o32, d32, with_labels=job.labels)
+        return job.scene.trace_local(o32, d32, with_labels=job.labels, serial=job.serial)
     dirs = subray_directions(direction, scan_dir, pat).reshape(-1, 3)
     origins = np.repeat(origin, pat.n, axis=0)
-    return job.scene.trace(origins, dirs, with_labels=job.labels)
+    return job.scene.trace(origins, dirs, with_labels=job.labels, serial=job.serial)
 
 
 def _trace_fused(job: _Job, batch, rng):
@@ -552,15 +533,17 @@ def _run_blocks(job: _Job, workers, progress, t0):
     workers = min(requested, max(n_blocks, 1))
     _JOB = job
     pool = None
-    serial = contextlib.ExitStack()
     try:
         if workers <= 1 or n_blocks <= 1:
-            if requested <= 1:  # one CPU asked for: the voxel-grid kernel runs without threads too
-                serial.enter_context(_serial_grid())
+            # one CPU asked for: the voxel-grid kernel runs without threads too
+            job.serial = requested <= 1
             it = map(_run_block, range(n_blocks))
         else:
+            # numba's default (workqueue) threading layer is not fork-safe: the forked workers
+            # (and the warm-up that compiles their kernels) trace serially
+            job.serial = True
             _warm_up(job, n_blocks)
-            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
+            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"))
             it = pool.map(_run_block, range(n_blocks))
         for k, r in enumerate(it):
             yield r
@@ -574,7 +557,6 @@ def _run_blocks(job: _Job, workers, progress, t0):
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
-        serial.close()
         _JOB = None
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)

@@ -19,26 +19,9 @@ import numpy as np
 
 from vlsforest.errors import InputDataError
 from vlsforest.io.las import PointCloud, write_las
+from vlsforest.io.npz import save_npz
 
 _PULSE_COLS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle", "source_id", "n_returns")
-
-
-def save_npz(path, arrays: dict) -> Path:
-    """Write arrays as a compressed ``.npz`` with fixed zip timestamps (same arrays → same bytes)."""
-    import io
-    import zipfile
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name in arrays:
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, buf.getvalue())
-    return path
 
 
 def write_points(path, result) -> Path:

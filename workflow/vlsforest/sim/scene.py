@@ -126,26 +126,18 @@ class Scene:
 
     #: with ``voxel_backend="auto"``, the voxel sets of a lattice go to Embree as 12 triangles
     #: per cube when the lattice holds up to this many cubes in all, else all of them to one
-    #: sparse grid. Embree pays ≈ 6 µs per cube to build (≈ 16 µs until session 31, when
-    #: embreex copied the buffers element by element) and then traces faster; the grid builds
-    #: in ≈ 0.5 µs per cube, and one grid per lattice beats Embree plus a grid for the same
-    #: crowns (measured on the default forest's P1, ULS: 0.02 m crowns 17 s → 2.4 s to load,
-    #: the whole simulation ≈ 10 % faster; 0.25 m crowns, 145 k cubes, stay in Embree, where
-    #: ULS traces ≈ 1.7× faster than in the grid).
+    #: sparse grid. Embree pays ≈ 6 µs per cube to build and then traces faster; the grid
+    #: builds in ≈ 0.5 µs per cube, and one grid per lattice beats Embree plus a grid for the
+    #: same crowns (``benchmarks/bench_embree_build.py``, ``benchmarks/bench_sim.py``).
     EMBREE_VOXEL_LIMIT = 300_000
     #: when the number of rays to trace is known (:meth:`plan_for_rays`; the simulator estimates
     #: it from the survey before tracing), ``auto`` weighs instead the Embree build (≈ 6 µs per
     #: cube, ``benchmarks/bench_embree_build.py``) against what Embree saves per ray over the
     #: grid (≈ 0.16 µs at 0.25 m cells, more in finer lattices, where the grid walks more cells:
     #: ≈ 0.16 µs · (0.25 m / h)^0.6), with a margin of 1.25 for the build, and never sends more
-    #: than :attr:`EMBREE_VOXEL_MAX` cubes of one lattice to Embree (≈ 1 kB each; session 31,
-    #: the default forest's P5 ULS, one worker: 0.02 m, 3.3 M cubes, 5.8 GB peak and 70 s in
-    #: Embree against 2.7 GB and 289 s in the grid; 0.05 m, 2.1 M cubes, 4.3 GB and 55 s
-    #: against 258 s; the limit was 2 M until the cubes went to Embree piece by piece,
-    #: :func:`_cube_triangle_chunks`). Measured on the default forest's P1 (session 13, 2 workers): ULS
-    #: (92 M sub-rays) fixed 0.25 m 30.0 → 18.9 s, scaled 35.6 → 20.5 s, fixed 0.10 m 41.7 →
-    #: 28.0 s, fixed 0.05 m 55.8 → 36.1 s in Embree; ALS (4.8 M sub-rays) scaled 3.5 s in the
-    #: grid vs 5.6 s, fixed 0.05 m 4.9 vs 19.7 s.
+    #: than :attr:`EMBREE_VOXEL_MAX` cubes of one lattice to Embree (≈ 1 kB each, built piece by
+    #: piece, :func:`_cube_triangle_chunks`): a dense airborne flight traces fine crowns faster
+    #: in Embree, a sparse one in the grid (``benchmarks/bench_sim.py``).
     EMBREE_VOXEL_MAX = 4_000_000
     _EMBREE_BUILD_S_PER_CUBE = 6e-6
     _EMBREE_SAVES_S_PER_RAY = 0.16e-6
@@ -451,7 +443,7 @@ class Scene:
             # Embree commits the BVH lazily: force it with one ray
             self._embree.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
-    def trace(self, origins, dirs, with_labels: bool = False, serial: bool | None = None):
+    def trace(self, origins, dirs, with_labels: bool = False, serial: bool = False):
         """Nearest hit of each ray.
 
         Parameters
@@ -526,7 +518,7 @@ class Scene:
         self.prepare()
         return self._shift.copy()
 
-    def trace_local(self, o32, d32, with_labels: bool = False, world=None, serial: bool | None = None):
+    def trace_local(self, o32, d32, with_labels: bool = False, world=None, serial: bool = False):
         """:meth:`trace` for float32 rays already in the Embree frame (world − :attr:`shift`).
 
         Saves the conversions when the caller builds its rays in float32 (the simulator does).
@@ -572,7 +564,7 @@ class Scene:
         res = self._embree.run(o32, d32, output=1)
         return res["tfar"], res["geomID"], res["Ng"], self._embree_parts
 
-    def _trace_grids(self, o, d, t, part, cos_inc, label, serial=None):
+    def _trace_grids(self, o, d, t, part, cos_inc, label, serial=False):
         """Update nearest hits (in place) with the voxel grids."""
         for g in self.grids:
             tg, pg, face, _ = g.trace(o, d, t.copy(), serial=serial)
@@ -804,7 +796,6 @@ def _read_centres(path: Path):
 
 
 # the unit cube's corners and triangles under the names tests of the Embree backend read
-_CUBE_CORNERS, _CUBE_FACES = CUBE_CORNERS, CUBE_FACES
 
 
 def _n_cubes(v: _VoxelSet) -> int:

@@ -106,8 +106,8 @@ DEFAULT_FOREST: dict = {
     # Bretten distributions (>= 8 m tall) have a mean crown projection area of ≈ 49 m², so 1.2
     # gives ≈ 220–240 stems/ha; crown plasticity (vlsforest.synth.trees) then cuts the crowns
     # where they meet, leaving a closed canopy: 85–90 % of the ground under a crown, stand LAI
-    # ≈ 7–9.  (Until session 9 the forest used 300 stems/ha without plasticity: crowns adding
-    # up to 1.4–1.7 × the ground area interpenetrated, stand LAI 23–39.)
+    # ≈ 7–9 (without plasticity, crowns adding up to more than the ground area would
+    # interpenetrate).
     # ``stand_density_per_ha`` (stems per hectare), when not null, is used instead.
     "canopy_cover": 1.2,
     "stand_density_per_ha": None,

@@ -51,15 +51,15 @@ import yaml
 
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud, write_las
+from vlsforest.domain.labels import GROUND_ID
 from vlsforest.io.mesh import TriangleMesh, write_mesh
 from vlsforest.sim.engine import simulate
-from vlsforest.sim.output import save_npz
+from vlsforest.io.npz import save_npz
 from vlsforest.sim.planning import plan_survey
 from vlsforest.sim.scanner import PRESETS, REAL_BEAMS, datasheet_divergence
 from vlsforest.sim.scene import Material, Scene
 from vlsforest.sim.survey import survey_from_dict
 
-GROUND_ID = 1
 WOOD, FOLIAGE = 1, 2
 
 DEFAULT_RECORDING_PHYSICS = {
@@ -68,13 +68,10 @@ DEFAULT_RECORDING_PHYSICS = {
         "elliptical_footprint": {"major_mrad": REAL_BEAMS["riegl_vq780i"]["full_1e2_mrad"][0],
                                  "minor_mrad": REAL_BEAMS["riegl_vq780i"]["full_1e2_mrad"][1],
                                  "convention": "1/e2", "orientation_deg": 0.0},
-        # Detection thresholds (peak amplitude units of the energy model; a full-footprint hit on
-        # foliage is ≈ 400 at the ALS's 700 m and ≈ 40 000 at the ULS's 70 m) calibrated on the
-        # quick forest (all trees, truth labels) towards the multiple-return shares of the real
-        # Bretten targets (ALS broadleaf 56 %, conifer 73 %; ULS 28 %, 33 %): ALS 61 / 72 %,
-        # ULS 47 / 55 % (benchmarks/bench_uls_threshold.py); the ULS's weak, wide beam loses
-        # partial hits.  A ULS threshold of 15 000 would give 40 / 44 %, but the conifer–broadleaf
-        # contrast then shrinks below the real 5 pp; matching both needs a 5 ns ULS window too.
+        # Detection thresholds in peak amplitude units of the energy model (a full-footprint hit
+        # on foliage is ≈ 400 at the ALS's 700 m and ≈ 40 000 at the ULS's 70 m; the divergence
+        # cancels from it): a real receiver loses the weakest partial hits, and the recordings'
+        # multiple-return shares are compared with the real Bretten targets' in the report.
         "detection_threshold": {"min_energy": 60.0},
         # GNSS/INS errors of a manned survey: ~5 cm position, 0.006° attitude (7 cm at 700 m)
         "trajectory_noise": {"position_sigma_m": 0.05, "attitude_sigma_deg": 0.006, "correlation_s": 2.0},
@@ -687,8 +684,8 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     if n_proc > 1:
         # two plots at a time, each recorded with all the workers: growing the trees, the TLS
         # scans and writing the clouds run on one CPU, and while one plot does that the other's
-        # ULS recording takes the idle core (one plot at a time used 159 % of one core in
-        # session 19). Spawned, not forked: a fork after the caller has built an Embree scene
+        # ULS recording takes the idle core (one plot at a time leaves a core idle for long
+        # stretches). Spawned, not forked: a fork after the caller has built an Embree scene
         # (whose task threads the child does not inherit) hangs in the child's first build.
         # The plots are independent (own seeds) and collected in plot order: the same bytes
         # as one after the other.
