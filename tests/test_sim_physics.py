@@ -439,3 +439,35 @@ def test_uls_canopy_intensities_do_not_saturate():
     assert np.abs(pts["intensity"] - amp * 65535 / 1e6).max() < 1.0
     order = np.argsort(amp, kind="stable")
     assert np.all(np.diff(pts["intensity"][order].astype(int)) >= 0)
+
+
+def test_range_noise_depends_on_the_return_alone():
+    """A return's range noise is drawn from its seed, pulse slot and return number: the same
+    whatever the region traced or the block size, other for another seed, slot or return."""
+    from vlsforest.sim.waveform import range_noise
+
+    slots = np.arange(200_000)
+    z = range_noise(7, slots, np.ones_like(slots), 1.0)
+    assert abs(z.mean()) < 0.01 and z.std() == pytest.approx(1.0, abs=0.01)
+    # normal tails: 4.55 % beyond 2σ, 0.27 % beyond 3σ
+    assert (np.abs(z) > 2).mean() == pytest.approx(0.0455, abs=0.003)
+    assert (np.abs(z) > 3).mean() == pytest.approx(0.0027, abs=0.0008)
+    # returns of one pulse, neighbouring slots and seeds: uncorrelated
+    z2 = range_noise(7, slots, np.full_like(slots, 2), 1.0)
+    assert abs(np.corrcoef(z, z2)[0, 1]) < 0.01 and abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 0.01
+    assert abs(np.corrcoef(z, range_noise(8, slots, np.ones_like(slots), 1.0))[0, 1]) < 0.01
+    assert np.array_equal(range_noise(7, slots[::-1], np.ones_like(slots), 1.0), z[::-1])
+    # through the simulator: a plane traced whole and within a region, in blocks of two sizes
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    sv = _survey(dict(NADIR, scan_angle_deg=5.0, max_scan_angle_deg=5.0, range_noise_m=0.05),
+                 _line(-2, 2, 100.0))
+    a = simulate(sc, sv, workers=1, block_slots=20000)
+    b = simulate(sc, sv, workers=1, block_slots=777, region=[-3.0, -50.0, 3.0, 50.0])
+    inside = np.abs(a.points["xyz"][:, 0]) < 2.0
+    key_a = {(s, r): z for s, r, z in zip(a.points["pulse"][inside], a.points["return_number"][inside],
+                                          a.points["xyz"][inside, 2])}
+    key_b = {(s, r): z for s, r, z in zip(b.points["pulse"], b.points["return_number"], b.points["xyz"][:, 2])}
+    assert len(key_a) > 1000 and key_a.keys() <= key_b.keys()
+    assert all(key_b[k] == v for k, v in key_a.items())
+    assert np.std(a.points["xyz"][:, 2]) == pytest.approx(0.05, rel=0.1)

@@ -248,12 +248,13 @@ def test_schema_lists_match_the_library():
     """The schema's scanner and override names are the library's (airborne presets; every
     overridable ScannerSettings field), so the schema neither rejects valid nor admits unknown
     names."""
-    from vlsforest.sim.scanner import PRESETS, ScannerSettings
+    from vlsforest.sim.scanner import DIVERGENCE_INPUTS, PRESETS, ScannerSettings
 
     scen = _load(SCHEMA)["properties"]["scenarios"]["additionalProperties"]["properties"]
     airborne = {name for name, s in PRESETS.items() if s.deflector != "tls"}
     assert set(scen["scanner"]["enum"]) == airborne
-    overridable = {f.name for f in dataclasses.fields(ScannerSettings)} - {"name", "deflector"}
+    # every field but the preset's identity, and the datasheet divergence inputs
+    overridable = ({f.name for f in dataclasses.fields(ScannerSettings)} - {"name", "deflector"}) | set(DIVERGENCE_INPUTS)
     assert set(scen["overrides"]["propertyNames"]["enum"]) == overridable
     # the segment block lists exactly SegmentConfig's settings
     from vlsforest.segment import SegmentConfig
@@ -520,7 +521,8 @@ def test_one_metre_region_margin_keeps_every_target_return(quick_run, scenario, 
     """The simulations trace only pulses whose beam reaches the targets' extent ±
     `simulation.region_margin_m` (default 1 m). The target clouds are taken by object id, and a
     target's voxels and stem lie within its TLS points ± one cell, so with 1 m the target points
-    are those of a trace 10 m wider, bit for bit (the quick surveys draw no noise), from fewer
+    are those of a trace 10 m wider, bit for bit (a return's range noise depends on its pulse
+    and return number alone), from fewer
     traced sub-rays. Checked on the coarsest fixed cells (0.25 m), which reach furthest beyond
     the points, with each voxel back-end: `auto` may route a lattice to the other back-end
     for fewer rays, and the two differ on rays that graze a cube edge (docs/simulator.md, "Scenes and back ends")."""

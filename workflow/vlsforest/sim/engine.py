@@ -1,10 +1,11 @@
 """The simulation loop: pulses → sub-rays → nearest hits → energy → waveform → returns → LAS.
 
-Work is split into fixed blocks of pulse slots (``block_slots``, default 20 000); block ``b``
-draws its range noise from ``numpy.random.default_rng([seed, b])``, so the output depends
-only on the scene, the survey and the seed — not on the number of worker processes. Blocks
-run in worker processes (fork) because Embree holds the GIL; results are gathered in block
-order.
+Work is split into fixed blocks of pulse slots (``block_slots``, default 20 000). The range
+noise of a return is a function of the seed, its pulse slot and its return number alone
+(:func:`~vlsforest.sim.waveform.range_noise`), so the output depends only on the scene, the
+survey and the seed — not on the number of worker processes, the block size or the region
+traced. Blocks run in worker processes (fork) because Embree holds the GIL; results are
+gathered in block order.
 
 Detector options (the SURVEY.yaml ``detector:`` mapping)::
 
@@ -39,7 +40,8 @@ import numpy as np
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.sim.beam import cone_meets_box, subray_directions, subray_pattern, subray_rays32
 from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
-                                    detection_constants, energy_constants, hit_energy, las_intensity)
+                                    detection_constants, energy_constants, hit_energy, las_intensity,
+                                    range_noise)
 
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
@@ -204,19 +206,18 @@ def _run_block(b: int):
     job = _JOB
     start = b * job.block_slots
     stop = min(start + job.block_slots, job.survey.n_slots)
-    rng = np.random.default_rng([job.seed, b])
     if job.fused and not job.keep_pulses:
         # only the emitted slots and the frames of the pulses whose beam reaches the scene are needed
         slots, live, traced_batch = job.survey.pulses_toward(start, stop, job.box_lo, job.box_hi, job.tan_off)
         if len(slots) == 0:
             return _empty_block(job)
-        points, n_live = _trace_fused(job, traced_batch, rng)
+        points, n_live = _trace_fused(job, traced_batch)
         n_ret = np.zeros(len(slots), np.int16)
         n_ret[live] = n_live
         return points, dict(slot=slots, n_returns=n_ret), None, len(live) * job.pattern.n
     if job.hits_only:
         return _hit_pulses_block(job, job.survey.pulses(start, stop))
-    return _trace_and_detect(job, job.survey.pulses(start, stop), rng)
+    return _trace_and_detect(job, job.survey.pulses(start, stop))
 
 
 def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
@@ -225,7 +226,7 @@ def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
     Forked workers inherit them instead of each compiling the same kernels at once (on a fresh
     checkout that cost ≈ 40 s of CPU per worker for the voxel-grid kernel alone). Runs the
     workers' serial code on the first block that traces anything (its result is discarded; the
-    workers redo it with the same random stream) and one ray through each voxel grid.
+    workers redo it) and one ray through each voxel grid.
     """
     for b in range(min(n_blocks, max_blocks)):
         if _run_block(b)[3] > 0:
@@ -247,7 +248,7 @@ def _cast(job: _Job, origin, direction, scan_dir):
     return job.scene.trace(origins, dirs, with_labels=job.labels, serial=job.serial)
 
 
-def _trace_fused(job: _Job, batch, rng):
+def _trace_fused(job: _Job, batch):
     """Trace every pulse of ``batch`` and detect its returns in one pass over the cast
     (:func:`detect_traced`); returns the points and the number of returns per pulse."""
     nl = len(batch)
@@ -261,15 +262,15 @@ def _trace_fused(job: _Job, batch, rng):
         tfar, geom, ng, parts = job.scene.cast_embree(o32, d32)
         p, ranges, amp, ray, num, nof, n_ret = detect_embree(tfar, geom, ng, d32, parts, live, pat.n, nl,
                                                              job.range_min, *consts)
-        return _assemble(job, batch.georeferenced(), p, ranges, amp, parts[geom[ray]], None, num, nof, rng), n_ret
+        return _assemble(job, batch.georeferenced(), p, ranges, amp, parts[geom[ray]], None, num, nof), n_ret
     traced = _cast(job, batch.origin, batch.direction, batch.scan_dir)
     t, part, cos_inc = traced[:3]
     p, ranges, amp, ray, num, nof, n_ret = detect_traced(t, part, cos_inc, live, pat.n, nl, job.range_min, *consts)
     label = traced[3][ray] if job.labels else None
-    return _assemble(job, batch.georeferenced(), p, ranges, amp, part[ray], label, num, nof, rng), n_ret
+    return _assemble(job, batch.georeferenced(), p, ranges, amp, part[ray], label, num, nof), n_ret
 
 
-def _trace_and_detect(job: _Job, batch, rng):
+def _trace_and_detect(job: _Job, batch):
     m = len(batch)
     pat = job.pattern
     ns = pat.n
@@ -278,14 +279,14 @@ def _trace_and_detect(job: _Job, batch, rng):
     live = _live_rows(job, batch)
     nl = len(live)
     if job.fused:  # hits, energy, waveform and peaks in one pass over the cast
-        points, n_live = _trace_fused(job, batch.subset(live), rng)
+        points, n_live = _trace_fused(job, batch.subset(live))
         n_ret = np.zeros(m, np.int16)
         n_ret[live] = n_live
         return points, _pulse_table(job, batch.georeferenced(), n_ret), None, nl * ns
     hits, ptr = _block_hits(job, batch, live)
     # traced along the true beams; returns placed along the recorded (nominal) ones
     geo = batch.georeferenced()
-    points, n_ret = _detect(job, geo, ptr, hits, rng)
+    points, n_ret = _detect(job, geo, ptr, hits)
     return points, _pulse_table(job, geo, n_ret), (hits if job.keep_hits else None), nl * ns
 
 
@@ -388,7 +389,7 @@ def _cone_box(origin, direction, lo, hi, tan_off, out):
                                 direction[i, 2], lo, hi, tan_off)
 
 
-def _detect(job: _Job, batch, ptr, hits, rng):
+def _detect(job: _Job, batch, ptr, hits):
     """Energy, waveform, peaks, noise and positions for a batch with its sub-ray hits."""
     sc = job.survey.scanner
     pat = job.pattern
@@ -408,11 +409,11 @@ def _detect(job: _Job, batch, ptr, hits, rng):
         def weighted(ranges):
             return _weighted_positions(job, batch, ptr, hits, energy, det, ranges)
     points = _assemble(job, batch, det["pulse"], det["range"], det["amplitude"], hpart[det["hit"]], label,
-                       det["return_number"], det["number_of_returns"], rng, weighted)
+                       det["return_number"], det["number_of_returns"], weighted)
     return points, det["n_returns"]
 
 
-def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, rng, weighted=None):
+def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, weighted=None):
     """The point arrays of detected returns: range noise, positions and per-point attributes.
 
     ``p`` is the batch row of each return, ``part`` the scene part of its nearest sub-ray hit;
@@ -420,7 +421,7 @@ def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, 
     """
     sc = job.survey.scanner
     if sc.range_noise_m > 0:
-        ranges = ranges + rng.normal(0.0, sc.range_noise_m, size=len(ranges))
+        ranges = ranges + range_noise(job.seed, batch.slot[p], ret_num, sc.range_noise_m)
     if weighted is None:
         xyz = batch.origin[p] + ranges[:, None] * batch.direction[p]
     else:
@@ -592,7 +593,8 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
         ``result.pulses``; without it only ``slot`` and ``n_returns`` are kept (less memory and
         inter-process traffic).
     block_slots : int
-        Pulse slots per block (fixes the random streams; keep it constant to compare runs).
+        Pulse slots per block (the work unit of the worker processes; the result does not
+        depend on it).
     region : (xmin, ymin, xmax, ymax), optional
         Trace only pulses whose beam reaches this horizontal region (the others are emitted
         and kept as zero-return pulses); geometry outside it still occludes and reflects.
@@ -703,7 +705,7 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
     seed : int, optional
         Noise seed (default: the survey's).
     block_slots : int
-        Must equal the value used when the hits were traced for identical noise streams.
+        Pulse slots per block of the re-detection (the result does not depend on it).
     """
     from types import SimpleNamespace
 
@@ -733,7 +735,7 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
         h = {k: v[h0:h1] for k, v in hits.items()}
         h["pulse"] = h["pulse"] - r0
         ptr = hit_ptr[r0:r1 + 1] - h0
-        p, n = _detect(job, batch, ptr, h, np.random.default_rng([job.seed, int(b)]))
+        p, n = _detect(job, batch, ptr, h)
         pts.append(p)
         n_ret.append(n)
     if not pts:

@@ -41,6 +41,55 @@ C_M_PER_NS = 0.299792458
 INTENSITY_FULL_SCALE = 1.0e6
 
 
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """The SplitMix64 finaliser: a bijection of uint64 that scatters every input bit."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * _MIX1
+    x = x ^ (x >> np.uint64(27))
+    x = x * _MIX2
+    return x ^ (x >> np.uint64(31))
+
+
+def _unit_uniform(seed: int, slot, ret, stream: int) -> np.ndarray:
+    """Uniform numbers in (0, 1), each a function of (seed, slot, ret, stream) alone."""
+    with np.errstate(over="ignore"):
+        key = _mix64(np.array([int(seed) & 0xFFFFFFFFFFFFFFFF], np.uint64) * _GOLDEN + np.uint64(stream))
+        x = _mix64(key ^ (np.asarray(slot, np.int64).astype(np.uint64) * _GOLDEN))
+        x = _mix64(x ^ (np.asarray(ret, np.int64).astype(np.uint64) + _GOLDEN))
+    return ((x >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0 ** -53
+
+
+def range_noise(seed: int, slot, return_number, sigma: float) -> np.ndarray:
+    """Gaussian range noise N(0, σ²) of returns, drawn per (seed, pulse slot, return number).
+
+    Each value depends on those three numbers only (a counter-based generator: SplitMix64
+    hashing and the Box–Muller transform), not on which other pulses a block traces, so a
+    return gets the same noise whatever region, block size or number of workers the
+    simulation uses, and re-detection from stored hits draws it again.
+
+    Parameters
+    ----------
+    seed : int
+        The survey's seed.
+    slot, return_number : array_like of int
+        The pulse slot and the return number (1-based) of each return.
+    sigma : float
+        Standard deviation (m).
+
+    Returns
+    -------
+    ndarray of float64
+    """
+    u1 = _unit_uniform(seed, slot, return_number, 1)
+    u2 = _unit_uniform(seed, slot, return_number, 2)
+    return float(sigma) * np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+
+
 def las_intensity(amplitude) -> np.ndarray:
     """LAS ``intensity`` of peak amplitudes, as HELIOS++ writes it.
 
