@@ -229,3 +229,37 @@ def cone_meets_box(o0, o1, o2, d0, d1, d2, lo, hi, tan_off):
         if t2 < t_exit:
             t_exit = t2
     return t_exit >= t_enter
+
+
+def cones_meet_box(origin, direction, lo, hi, tan_off: float) -> np.ndarray:
+    """:func:`cone_meets_box` for many beams: whether the cone of half-angle ``atan(tan_off)``
+    around each central ray meets the box ``[lo, hi]`` (False for every beam when a corner of
+    the box is not finite).
+
+    Parameters
+    ----------
+    origin, direction : ndarray, shape (n, 3)
+        Ray origins and unit directions.
+    lo, hi : array_like, shape (3,)
+        The box.
+    tan_off : float
+        Tangent of the cone's half angle.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    out = np.zeros(len(origin), dtype=np.bool_)
+    if np.isfinite(lo).all() and np.isfinite(hi).all():
+        _cones_box(np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
+                   lo, hi, float(tan_off), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _cones_box(origin, direction, lo, hi, tan_off, out):
+    for i in range(origin.shape[0]):
+        out[i] = cone_meets_box(origin[i, 0], origin[i, 1], origin[i, 2], direction[i, 0], direction[i, 1],
+                                direction[i, 2], lo, hi, tan_off)

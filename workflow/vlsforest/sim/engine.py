@@ -38,7 +38,7 @@ import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
-from vlsforest.sim.beam import cone_meets_box, subray_directions, subray_pattern, subray_rays32
+from vlsforest.sim.beam import cones_meet_box, subray_directions, subray_pattern, subray_rays32
 from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
                                     detection_constants, energy_constants, hit_energy, las_intensity,
                                     range_noise)
@@ -375,18 +375,7 @@ def _collect_hits(t, range_min, ns, live, m):
 
 def _beam_meets_box(origin, direction, lo, hi, max_offset):
     """Whether the cone of half-angle ``max_offset`` around each central ray meets the box."""
-    out = np.zeros(len(origin), dtype=np.bool_)
-    if np.isfinite(lo).all() and np.isfinite(hi).all():
-        _cone_box(np.ascontiguousarray(origin), np.ascontiguousarray(direction), np.asarray(lo, np.float64),
-                  np.asarray(hi, np.float64), float(np.tan(max_offset)), out)
-    return out
-
-
-@numba.njit(cache=True)
-def _cone_box(origin, direction, lo, hi, tan_off, out):
-    for i in range(origin.shape[0]):
-        out[i] = cone_meets_box(origin[i, 0], origin[i, 1], origin[i, 2], direction[i, 0], direction[i, 1],
-                                direction[i, 2], lo, hi, tan_off)
+    return cones_meet_box(origin, direction, lo, hi, np.tan(max_offset))
 
 
 def _detect(job: _Job, batch, ptr, hits):

@@ -71,7 +71,7 @@ import pandas as pd
 import yaml
 
 from vlsforest.errors import ConfigError
-from vlsforest.sim.beam import cone_meets_box
+from vlsforest.sim.beam import cone_meets_box, cones_meet_box
 from vlsforest.sim.scanner import (
     ScannerSettings,
     apply_overrides,
@@ -469,10 +469,7 @@ class Survey:
         kind = {"polygon": 0, "rotating": 1, "oscillating": 2, "tls": 3}.get(s.deflector, -1)
         if self._noise is not None or kind < 0 or not 0 <= start <= stop <= self.n_slots or start == stop:
             batch = self.pulses(start, stop)
-            out = np.zeros(len(batch), dtype=np.bool_)
-            if finite:
-                _cone_box_all(batch.origin, batch.direction, lo, hi, float(tan_off), out)
-            live = np.flatnonzero(out)
+            live = np.flatnonzero(cones_meet_box(batch.origin, batch.direction, lo, hi, float(tan_off)))
             return batch.slot, live, batch.subset(live)
         if kind == 0:
             a, b = -s.max_scan_angle_deg, 2.0 * s.max_scan_angle_deg
@@ -573,13 +570,6 @@ class Survey:
 
 
 # --------------------------------------------------------------------------- compiled pulses
-
-
-@numba.njit(cache=True)
-def _cone_box_all(origin, direction, lo, hi, tan_off, out):
-    for i in range(origin.shape[0]):
-        out[i] = cone_meets_box(origin[i, 0], origin[i, 1], origin[i, 2], direction[i, 0], direction[i, 1],
-                                direction[i, 2], lo, hi, tan_off)
 
 
 @numba.njit(cache=True, inline="always")
