@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from vlsforest.errors import ConfigError
+from vlsforest.io.atomic import check_output_path
 
 
 def register(sub) -> None:
@@ -41,10 +42,7 @@ def run(args) -> int:
     method = _json(args.method_json, "method")
     size = args.voxel_size if args.voxel_size is not None else float(method.get("voxel_size", 0.25))
     out = Path(args.output)
-    if out.suffix not in (".yaml", ".yml"):
-        raise ConfigError(f"-o must name a .yaml file, got {out}")
-    path = write_demo(out.parent, seed=args.seed, voxel_size=size, ground_z=float(plot.get("ground_z", 0.0)),
-                      half_extent=float(plot.get("half_extent_m", 20.0)))
-    if path != out:
-        path.rename(out)
+    check_output_path(out, (".yaml", ".yml"), "-o")
+    write_demo(out.parent, seed=args.seed, voxel_size=size, ground_z=float(plot.get("ground_z", 0.0)),
+               half_extent=float(plot.get("half_extent_m", 20.0)), name=out.name)
     return 0

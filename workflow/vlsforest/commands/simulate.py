@@ -32,13 +32,20 @@ def register(sub) -> None:
 
 def run(args) -> int:
     """Execute ``vlsforest simulate``."""
-    from vlsforest.sim import Scene, load_survey, save_hits, simulate, write_points, write_pulses
+    from vlsforest.io.atomic import check_output_path, write_text
+    from vlsforest.sim import (HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES, Scene, load_survey, save_hits,
+                               simulate, write_points, write_pulses)
 
     if not args.region_margin >= 0:
         from vlsforest.errors import ConfigError
 
         raise ConfigError(f"--region-margin must be ≥ 0 (m), got {args.region_margin}")
     check_workers(args.workers)
+    check_output_path(args.output, POINTS_SUFFIXES, "-o")
+    for opt, path, suffixes in (("--pulses", args.pulses, PULSES_SUFFIXES), ("--hits", args.hits, HITS_SUFFIXES),
+                                ("--timing", args.timing, (".json",))):
+        if path:
+            check_output_path(path, suffixes, opt)
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     region = args.region
@@ -68,15 +75,13 @@ def run(args) -> int:
     if args.pulses:
         write_pulses(args.pulses, res)
     if args.hits:
-        save_hits(args.hits, res, scene)
+        save_hits(args.hits, res, scene, survey.scanner)
     t = res.timings
     if args.timing:
         import json
-        from pathlib import Path
 
-        Path(args.timing).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.timing).write_text(json.dumps({k: (float(v) if isinstance(v, float) else v)
-                                                 for k, v in t.items()}, indent=1, sort_keys=True) + "\n")
+        write_text(args.timing, json.dumps({k: (float(v) if isinstance(v, float) else v)
+                                            for k, v in t.items()}, indent=1, sort_keys=True) + "\n")
     if not args.quiet:
         print(f"simulate: {t['n_pulses']} pulses, {t['n_points']} points in {t['total']:.1f} s "
               f"({t['n_pulses'] / max(t['total'], 1e-9):,.0f} pulses/s) → {args.output}", file=sys.stderr)

@@ -21,6 +21,7 @@ import laspy
 import numpy as np
 
 from vlsforest.errors import InputDataError
+from vlsforest.io.atomic import atomic_path
 
 #: standard point-format-6 dimensions that :func:`write_las` fills from ``PointCloud.attrs``
 _STANDARD = {
@@ -164,7 +165,6 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
         The path written.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.creation_date = _creation_date()
     header.generating_software = "vlsforest"
@@ -213,7 +213,7 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     rec["bit_fields"] = bits
     rec["classification_flags"] = flags
     # straight to the writer: a LasData would compute the header's bounds and counts a second time
-    with open(path, "wb+") as out, laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz",
-                                                    closefd=False) as writer:
+    with atomic_path(path) as tmp, open(tmp, "wb+") as out, \
+            laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz", closefd=False) as writer:
         writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
     return path
