@@ -13,9 +13,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from vlsforest import __version__
 from vlsforest._memory import keep_freed_memory
+from vlsforest.commands import check_outputs
 from vlsforest.errors import VlsforestError
 from vlsforest.io.atomic import output_transaction
 
@@ -61,8 +63,19 @@ def main(argv: list[str] | None = None) -> int:
     only = argv[0] if argv and argv[0] in COMMANDS else None
     parser = build_parser(only)
     args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        # a warning is one line naming the stage (vlsforest.io.las.DataWarning and the like)
+        warnings.showwarning = lambda message, category, *_, **__: print(
+            f"vlsforest {args.command}: warning: {one_line(message)}", file=sys.stderr)
+        return _run(args)
+
+
+def _run(args) -> int:
+    """Run the parsed command: check its outputs, run it in one output transaction, turn
+    deliberate errors and interrupts into one line."""
     try:
         keep_freed_memory()  # only with VLSFOREST_MALLOC_TUNING=1 (vlsforest._memory)
+        check_outputs(args)
         with output_transaction():
             rc = args.func(args)
     except VlsforestError as exc:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import sys
 
+from vlsforest.commands import declare_outputs
+from vlsforest.sim.output import POINTS_SUFFIXES, PULSES_SUFFIXES
+
 
 def register(sub) -> None:
     """Add the ``detect`` sub-command."""
@@ -17,17 +20,13 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="noise seed")
     p.add_argument("--pulses", default=None, help="also write the per-pulse table (.npz or .csv)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=POINTS_SUFFIXES, pulses=PULSES_SUFFIXES)
 
 
 def run(args) -> int:
     """Execute ``vlsforest detect``."""
-    from vlsforest.io.atomic import check_output_path
-    from vlsforest.sim import (POINTS_SUFFIXES, PULSES_SUFFIXES, load_hits, load_survey, redetect, write_points,
-                               write_pulses)
+    from vlsforest.sim import load_hits, load_survey, redetect, write_points, write_pulses
 
-    check_output_path(args.output, POINTS_SUFFIXES, "-o")
-    if args.pulses:
-        check_output_path(args.pulses, PULSES_SUFFIXES, "--pulses")
     parts, pulses, hits, block, beam = load_hits(args.hits)
     survey = load_survey(args.survey)
     res = redetect(parts, pulses, hits, survey, seed=args.seed, block_slots=block, beam=beam)

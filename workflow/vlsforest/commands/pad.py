@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from vlsforest.commands import CSV, PNG, declare_outputs
 from vlsforest.errors import ConfigError
 
 
@@ -59,6 +60,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--min-shots", type=int, default=20, metavar="N",
                    help="validation: voxels crossed by fewer shots are left out of bias/RMSE (default 20)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=(".vox",), table=CSV, figure=PNG)
     return p
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 import sys
 
-from vlsforest.commands import check_workers
+from vlsforest.commands import JSON, check_workers, declare_outputs
+from vlsforest.sim.output import HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES
 
 
 def register(sub) -> None:
@@ -28,24 +29,19 @@ def register(sub) -> None:
     p.add_argument("--region-margin", type=float, default=1.0,
                    help="margin around the targets (m, default 1: the workflow's simulation.region_margin_m)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=POINTS_SUFFIXES, pulses=PULSES_SUFFIXES, hits=HITS_SUFFIXES, timing=JSON)
 
 
 def run(args) -> int:
     """Execute ``vlsforest simulate``."""
-    from vlsforest.io.atomic import check_output_path, write_text
-    from vlsforest.sim import (HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES, Scene, load_survey, save_hits,
-                               simulate, write_points, write_pulses)
+    from vlsforest.io.atomic import write_text
+    from vlsforest.sim import Scene, load_survey, save_hits, simulate, write_points, write_pulses
 
     if not args.region_margin >= 0:
         from vlsforest.errors import ConfigError
 
         raise ConfigError(f"--region-margin must be ≥ 0 (m), got {args.region_margin}")
     check_workers(args.workers)
-    check_output_path(args.output, POINTS_SUFFIXES, "-o")
-    for opt, path, suffixes in (("--pulses", args.pulses, PULSES_SUFFIXES), ("--hits", args.hits, HITS_SUFFIXES),
-                                ("--timing", args.timing, (".json",))):
-        if path:
-            check_output_path(path, suffixes, opt)
     scene = Scene.from_yaml(args.scene)
     survey = load_survey(args.survey)
     region = args.region

@@ -5,6 +5,7 @@
 - :mod:`vlsforest.io.mesh` — triangle meshes (OBJ, PLY).
 - :mod:`vlsforest.io.voxel_model` — voxel models (``.npz``) and their AMAPVox export.
 - :mod:`vlsforest.io.npz` — deterministic ``.npz`` files and their validating loader.
+- :mod:`vlsforest.io.yamlfile` — YAML files, with one-line errors.
 - :mod:`vlsforest.io.atomic` — whole-or-nothing writes (temporary name + rename) and output path checks.
 """
 

@@ -24,11 +24,21 @@ from pathlib import Path
 
 from vlsforest.errors import OutputPathError
 
-__all__ = ["atomic_path", "atomic_dir", "output_transaction", "write_text", "write_bytes",
-           "check_output_path", "check_output_dir"]
+__all__ = ["atomic_path", "atomic_dir", "output_transaction", "flush", "make_folder", "write_text", "write_bytes", "write_csv",
+           "save_figure", "check_output_path", "check_output_dir"]
 
-#: the transaction in progress (a list of pending (temporary, final) renames), or None
-_PENDING: contextvars.ContextVar[list | None] = contextvars.ContextVar("vlsforest_pending_outputs", default=None)
+class _Transaction:
+    """The pending renames ``(temporary, final)`` and the folders made for them, in order."""
+
+    def __init__(self):
+        self.renames: list = []
+        self.made: list = []
+        self.flushed: list = []
+
+
+#: the transaction in progress, or None
+_PENDING: contextvars.ContextVar[_Transaction | None] = contextvars.ContextVar("vlsforest_pending_outputs",
+                                                                               default=None)
 
 
 def _temporary_name(path: Path) -> Path:
@@ -65,11 +75,34 @@ def _install(tmp: Path, final: Path) -> None:
         os.replace(tmp, final)
 
 
-def _make_parent(path: Path) -> None:
+def _make_parent(path: Path) -> list:
+    """Create the missing folders above ``path``; return them, outermost first."""
+    missing = []
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    made = []
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        for folder in reversed(missing):
+            folder.mkdir()
+            made.append(folder)
     except OSError as exc:
+        _remove_empty(made)
         raise OutputPathError(f"{path}: cannot create its folder ({exc.strerror or exc})") from None
+    pending = _PENDING.get()
+    if pending is not None:
+        pending.made.extend(made)
+    return made
+
+
+def _remove_empty(folders: list) -> None:
+    """Remove folders (innermost first) that are empty; leave any that hold something."""
+    for folder in reversed(folders):
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
 
 
 def _commit_or_defer(tmp: Path, final: Path) -> None:
@@ -77,7 +110,7 @@ def _commit_or_defer(tmp: Path, final: Path) -> None:
     if pending is None:
         _install(tmp, final)
     else:
-        pending.append((tmp, final))
+        pending.renames.append((tmp, final))
 
 
 @contextlib.contextmanager
@@ -97,12 +130,14 @@ def atomic_path(path):
         end); on any exception, :class:`KeyboardInterrupt` included, it is removed.
     """
     path = Path(path)
-    _make_parent(path)
+    made = _make_parent(path)
     tmp = _temporary_name(path)
     try:
         yield tmp
     except BaseException:
         _remove(tmp)
+        if _PENDING.get() is None:
+            _remove_empty(made)
         raise
     if not tmp.exists():
         raise OutputPathError(f"{path}: the writer produced no file")
@@ -125,12 +160,14 @@ def atomic_dir(path):
         A temporary sibling folder. On any exception it is removed with everything in it.
     """
     path = Path(path)
-    _make_parent(path)
+    made = _make_parent(path)
     tmp = Path(tempfile.mkdtemp(prefix=".tmp-", suffix=f"-{path.name}", dir=path.parent))
     try:
         yield tmp
     except BaseException:
         _remove(tmp)
+        if _PENDING.get() is None:
+            _remove_empty(made)
         raise
     os.chmod(tmp, 0o755 & ~_umask())
     _commit_or_defer(tmp, path)
@@ -142,28 +179,66 @@ def output_transaction():
 
     When the block ends without an exception, the finished files are renamed into place in the
     order they were written; on an exception (an interrupt included) every temporary file and
-    folder is removed and no output appears. Nested transactions join the outer one.
+    folder is removed, so are the folders made for them when empty, and no output appears.
+    Nested transactions join the outer one.
     """
     if _PENDING.get() is not None:
         yield
         return
-    pending: list = []
+    pending = _Transaction()
     token = _PENDING.set(pending)
     try:
         yield
     except BaseException:
         _PENDING.reset(token)
-        for tmp, _ in reversed(pending):
-            _remove(tmp)
+        _abandon(pending, 0)
         raise
     _PENDING.reset(token)
+    done = 0
     try:
-        for i, (tmp, final) in enumerate(pending):
+        for tmp, final in pending.renames:
             _install(tmp, final)
+            done += 1
     except BaseException:
-        for tmp, _ in pending[i:]:
-            _remove(tmp)
+        _abandon(pending, done)
         raise
+
+
+def _abandon(pending: _Transaction, start: int) -> None:
+    """Remove the temporary outputs not yet installed, the outputs flushed early and the folders
+    left empty."""
+    for tmp, _ in reversed(pending.renames[start:]):
+        _remove(tmp)
+    for final in reversed(pending.flushed):
+        _remove(final)
+    _remove_empty(pending.made)
+
+
+def make_folder(path) -> Path:
+    """Create the folder ``path`` and its missing parents as outputs of the current transaction
+    (removed again, when left empty, if the transaction fails); return ``path``."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputPathError(f"{path}: is a file, expected a folder")
+    _make_parent(path / "_")
+    return path
+
+
+def flush() -> None:
+    """Install the outputs written so far in the current transaction, so that the command can
+    read them back (e.g. a scene description and its parts before exporting them).
+
+    They still count as the transaction's outputs: if it fails later, they are removed. Outside
+    a transaction, nothing to do.
+    """
+    pending = _PENDING.get()
+    if pending is None:
+        return
+    while pending.renames:
+        tmp, final = pending.renames[0]
+        _install(tmp, final)
+        pending.renames.pop(0)
+        pending.flushed.append(final)
 
 
 def _umask() -> int:
@@ -260,3 +335,20 @@ def _check_place(path: Path, what: str) -> None:
     why = _probe(ancestor)
     if why is not None:
         raise OutputPathError(f"{what} {path}: cannot write in {ancestor} ({why})")
+
+
+def write_csv(path, frame, **to_csv) -> Path:
+    """Write a pandas DataFrame with ``frame.to_csv(…, **to_csv)`` atomically; return ``path``."""
+    with atomic_path(path) as tmp:
+        frame.to_csv(tmp, **to_csv)
+    return Path(path)
+
+
+def save_figure(path, fig, **savefig) -> Path:
+    """Save a matplotlib figure with ``fig.savefig(…, **savefig)`` atomically; return ``path``.
+
+    The temporary name keeps the suffix, so the format follows ``path`` as with ``savefig``.
+    """
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, **savefig)
+    return Path(path)
