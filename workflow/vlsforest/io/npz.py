@@ -77,7 +77,7 @@ def _read_arrays(path: Path, what: str) -> dict:
     import zipfile
 
     if not path.is_file():
-        raise InputDataError(f"{path}: no such {what} file")
+        raise InputDataError(f"{path}: no such file (expected a {what} .npz)")
     if path.stat().st_size == 0:
         raise InputDataError(f"{path}: the {what} file is empty")
     if not zipfile.is_zipfile(path):
