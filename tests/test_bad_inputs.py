@@ -336,6 +336,9 @@ def test_extract_sim_without_object_id_names_the_file(ws, tmp_path, capsys):
     ('{"kind": "fixed", "voxelsize": 0.2}', "'voxelsize'"),
     ('{"kind": "scaled", "a_0": 0.2}', "'a_0'"),
     ('{"kind": "fixed", "voxel_size": 0.5, "colour": 1}', "'colour'"),
+    ('{"kind": "fixed", "voxel_size": "big"}', "voxel_size"),
+    ('{"kind": "scaled", "shift": 3}', "shift"),
+    ('{"kind": "fixed", "min_points": true}', "min_points"),
 ])
 def test_unknown_method_key_names_the_key(ws, tmp_path, capsys, method, needle):
     out = tmp_path / "v.npz"

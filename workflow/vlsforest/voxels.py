@@ -469,6 +469,15 @@ def check_method_keys(func, params: dict, where: str, kind: str) -> None:
     missing = [p.name for p in sig if p.name in known and p.default is p.empty and p.name not in params]
     if missing:
         raise ConfigError(f"{where}: kind {kind!r} needs the key(s) {', '.join(missing)}")
+    for p in sig:  # a value of another type than the key's default (a number, a name)
+        if p.name not in params or p.default is p.empty or p.default is None:
+            continue
+        v, d = params[p.name], p.default
+        number = isinstance(d, (int, float)) and not isinstance(d, bool)
+        if number and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ConfigError(f"{where}.{p.name}: must be a number, got {v!r}")
+        if isinstance(d, str) and not isinstance(v, str):
+            raise ConfigError(f"{where}.{p.name}: must be a name (text), got {v!r}")
 
 
 __all__ = [

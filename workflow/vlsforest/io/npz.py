@@ -86,8 +86,8 @@ def _read_arrays(path: Path, what: str) -> dict:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as exc:  # truncated or corrupt members: zlib.error, EOFError, BadZipFile, ValueError …
-        raise InputDataError(f"{path}: the {what} file is truncated or corrupt "
-                             f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+        raise InputDataError(f"{path}: the {what} file cannot be read: truncated, corrupt or holding pickled "
+                             f"objects ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
 
 
 def load_npz(path, spec: dict, what: str, prefixes: dict | None = None) -> dict:
