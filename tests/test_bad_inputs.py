@@ -501,6 +501,50 @@ def test_sigint_during_the_write_phase_of_a_subprocess(ws, tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_kill_9_during_the_write_phase_then_the_same_command_again(ws, tmp_path):
+    """``kill -9`` while simulate writes its hits file leaves no output under a final name; running
+    the command again gives the uninterrupted bytes and removes what the killed process left."""
+    import signal
+    import time
+
+    script = (
+        "import sys, time\n"
+        "import numpy as np\n"
+        "from pathlib import Path\n"
+        "from vlsforest import cli\n"
+        "orig = np.lib.format.write_array\n"
+        "n = [0]\n"
+        "def stall(*a, **k):\n"
+        "    n[0] += 1\n"
+        "    if n[0] == 12:\n"
+        "        Path(sys.argv[1]).write_text('writing')\n"
+        "        time.sleep(120)\n"
+        "    return orig(*a, **k)\n"
+        "np.lib.format.write_array = stall\n"
+        "sys.exit(cli.main(sys.argv[2:]))\n"
+    )
+    outs = [tmp_path / "o.laz", tmp_path / "p.npz", tmp_path / "h.npz"]
+    argv = ["simulate", str(ws / "scene" / "scene.yaml"), str(ws / "survey.yaml"), "-o", str(outs[0]),
+            "--pulses", str(outs[1]), "--hits", str(outs[2]), "--quiet", "--workers", "1"]
+    marker = tmp_path.parent / f"{tmp_path.name}.marker"
+    env = {**os.environ, "PYTHONPATH": str(REPO / "workflow")}
+    proc = subprocess.Popen([sys.executable, "-c", script, str(marker), *argv], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while not marker.exists() and proc.poll() is None and time.monotonic() - t0 < 240:
+        time.sleep(0.1)
+    assert marker.exists(), "the subprocess never reached its write phase"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert not any(p.exists() for p in outs)
+    assert list(tmp_path.glob(".tmp-*"))  # what the killed process was writing, under temporary names
+    assert main(argv) == 0
+    assert outs[0].read_bytes() == (ws / "sim.laz").read_bytes()
+    assert outs[1].read_bytes() == (ws / "pulses.npz").read_bytes()
+    assert outs[2].read_bytes() == (ws / "hits.npz").read_bytes()
+    assert not list(tmp_path.glob(".tmp-*"))
+
+
 # -------------------------------------------------- class 6: HELIOS++ export of every part type
 def test_scene_helios_exports_the_demo_scene(ws, tmp_path):
     import xml.etree.ElementTree as ET

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import glob
 import os
 import shutil
 import tempfile
@@ -42,13 +43,37 @@ _PENDING: contextvars.ContextVar[_Transaction | None] = contextvars.ContextVar("
 
 
 def _temporary_name(path: Path) -> Path:
-    """A fresh hidden sibling of ``path`` that keeps its suffixes (``out.laz`` → ``.tmp-…-out.laz``).
+    """A fresh hidden sibling of ``path`` that keeps its suffixes (``out.laz`` →
+    ``.tmp-{pid}-{random}-out.laz``).
 
     Keeping the suffixes matters to writers that choose a format by them (LAZ, pandas, matplotlib).
+    The process id in the name lets a later writer of the same output remove what a killed
+    process left (:func:`_remove_stale`).
     """
-    fd, name = tempfile.mkstemp(prefix=".tmp-", suffix=f"-{path.name}", dir=path.parent)
+    _remove_stale(path)
+    fd, name = tempfile.mkstemp(prefix=f".tmp-{os.getpid()}-", suffix=f"-{path.name}", dir=path.parent)
     os.close(fd)
     return Path(name)
+
+
+def _remove_stale(path: Path) -> None:
+    """Remove temporary siblings of ``path`` left by processes that no longer run (``kill -9``)."""
+    for tmp in path.parent.glob(f".tmp-*-{glob.escape(path.name)}"):
+        pid = tmp.name.split("-")[1]
+        if pid.isdigit() and not _alive(int(pid)):
+            _remove(tmp)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _remove(path: Path) -> None:
@@ -161,7 +186,8 @@ def atomic_dir(path):
     """
     path = Path(path)
     made = _make_parent(path)
-    tmp = Path(tempfile.mkdtemp(prefix=".tmp-", suffix=f"-{path.name}", dir=path.parent))
+    _remove_stale(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{os.getpid()}-", suffix=f"-{path.name}", dir=path.parent))
     try:
         yield tmp
     except BaseException:
