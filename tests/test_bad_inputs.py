@@ -622,3 +622,43 @@ def test_npz_loader_rejects_a_zip_without_arrays(tmp_path):
         zf.writestr("readme.txt", "hello")
     with pytest.raises(InputDataError, match="z.npz"):
         load_hits(tmp_path / "z.npz")
+
+
+# ------------------------------------------------------------------ the atomic writer itself
+def test_a_failed_write_keeps_the_previous_file_and_leaves_no_temporary(tmp_path):
+    from vlsforest.io.atomic import atomic_path, write_text
+
+    write_text(tmp_path / "a.txt", "old\n")
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_path(tmp_path / "a.txt") as tmp:
+            tmp.write_text("half")
+            raise KeyboardInterrupt
+    assert (tmp_path / "a.txt").read_text() == "old\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_a_transaction_installs_all_or_nothing_and_removes_the_folders_it_made(tmp_path):
+    from vlsforest.io.atomic import output_transaction, write_text
+
+    with pytest.raises(RuntimeError):
+        with output_transaction():
+            write_text(tmp_path / "x" / "y" / "one.txt", "1")
+            write_text(tmp_path / "two.txt", "2")
+            assert not (tmp_path / "two.txt").exists()  # deferred to the end
+            raise RuntimeError("the third output failed")
+    assert not any(tmp_path.iterdir())
+    with output_transaction():
+        write_text(tmp_path / "x" / "one.txt", "1")
+        write_text(tmp_path / "two.txt", "2")
+    assert (tmp_path / "x" / "one.txt").read_text() == "1" and (tmp_path / "two.txt").read_text() == "2"
+
+
+def test_a_folder_output_replaces_the_old_folder_whole(tmp_path):
+    from vlsforest.io.atomic import atomic_dir
+
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "stale.obj").write_text("old")
+    with atomic_dir(tmp_path / "d") as tmp:
+        (tmp / "new.obj").write_text("new")
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["new.obj"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]

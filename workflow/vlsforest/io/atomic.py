@@ -25,8 +25,9 @@ from pathlib import Path
 
 from vlsforest.errors import OutputPathError
 
-__all__ = ["atomic_path", "atomic_dir", "output_transaction", "flush", "make_folder", "write_text", "write_bytes", "write_csv",
-           "save_figure", "check_output_path", "check_output_dir"]
+__all__ = ["atomic_path", "atomic_dir", "output_transaction", "flush", "make_folder", "write_text", "write_bytes",
+           "write_csv", "save_figure", "check_output_path", "check_output_dir"]
+
 
 class _Transaction:
     """The pending renames ``(temporary, final)`` and the folders made for them, in order."""
@@ -110,7 +111,12 @@ def _make_parent(path: Path) -> list:
     made = []
     try:
         for folder in reversed(missing):
-            folder.mkdir()
+            try:
+                folder.mkdir()
+            except FileExistsError:  # made meanwhile by another process: not ours to remove
+                if not folder.is_dir():
+                    raise
+                continue
             made.append(folder)
     except OSError as exc:
         _remove_empty(made)
