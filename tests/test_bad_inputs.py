@@ -662,3 +662,42 @@ def test_a_folder_output_replaces_the_old_folder_whole(tmp_path):
         (tmp / "new.obj").write_text("new")
     assert [p.name for p in (tmp_path / "d").iterdir()] == ["new.obj"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
+
+
+def _pulses_csv(ws, tmp, edit):
+    import pandas as pd
+
+    from vlsforest.sim.output import load_pulses
+
+    p = load_pulses(ws / "pulses.npz")
+    cols = {"slot": p["slot"], "gps_time": p["gps_time"]}
+    for name in ("origin", "direction", "scan_dir"):
+        for i, ax in enumerate("xyz"):
+            cols[f"{name}_{ax}"] = p[name][:, i]
+    cols.update(scan_angle=p["scan_angle"], source_id=p["source_id"], n_returns=p["n_returns"])
+    df = pd.DataFrame(cols)
+    edit(df)
+    df.to_csv(tmp / "p.csv", index=False)
+    return tmp / "p.csv"
+
+
+@pytest.mark.parametrize("case, build, needle", [
+    ("npz_text", _bytes_file("p.npz", b"slot\n1\n"), "not a zip"),
+    ("npz_no_origin", _npz_variant("p.npz", lambda ws: dict(np.load(ws / "pulses.npz")),
+                                   lambda a: a.pop("origin")), "'origin'"),
+    ("npz_nan", _npz_variant("p.npz", lambda ws: dict(np.load(ws / "pulses.npz")),
+                             lambda a: a["gps_time"].__setitem__(0, np.inf)), "'gps_time'"),
+    ("csv_no_column", lambda ws, tmp: _pulses_csv(ws, tmp, lambda df: df.pop("direction_y")), "direction_y"),
+    ("csv_text_value", lambda ws, tmp: _pulses_csv(ws, tmp, lambda df: df.__setitem__("slot", "x")), "slot"),
+    ("csv_empty", _bytes_file("p.csv", b""), "p.csv"),
+])
+def test_bad_pulse_table(ws, tmp_path, case, build, needle):
+    """The pulse-table loader: one InputDataError naming the file and the column."""
+    from vlsforest.errors import InputDataError
+    from vlsforest.sim.output import load_pulses
+
+    path = build(ws, tmp_path)
+    with pytest.raises(InputDataError) as info:
+        load_pulses(path)
+    msg = str(info.value)
+    assert str(path) in msg and needle in msg and "\n" not in msg
