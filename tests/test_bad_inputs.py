@@ -701,3 +701,11 @@ def test_bad_pulse_table(ws, tmp_path, case, build, needle):
         load_pulses(path)
     msg = str(info.value)
     assert str(path) in msg and needle in msg and "\n" not in msg
+
+
+def test_the_commands_declare_the_simulator_output_suffixes():
+    """The suffixes the command line checks are those the simulator's writers accept."""
+    from vlsforest.commands import LAS, NPZ, PULSES
+    from vlsforest.sim.output import HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES
+
+    assert (LAS, PULSES, NPZ) == (POINTS_SUFFIXES, PULSES_SUFFIXES, HITS_SUFFIXES)

@@ -16,6 +16,8 @@ YAML = (".yaml", ".yml")
 JSON = (".json",)
 NPZ = (".npz",)
 PNG = (".png",)
+#: a per-pulse table (``simulate``/``detect --pulses``; :data:`vlsforest.sim.output.PULSES_SUFFIXES`)
+PULSES = (".npz", ".csv")
 
 
 def check_workers(workers) -> None:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from vlsforest.commands import declare_outputs
-from vlsforest.sim.output import POINTS_SUFFIXES, PULSES_SUFFIXES
+from vlsforest.commands import LAS, PULSES, declare_outputs
 
 
 def register(sub) -> None:
@@ -20,7 +19,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="noise seed")
     p.add_argument("--pulses", default=None, help="also write the per-pulse table (.npz or .csv)")
     p.set_defaults(func=run)
-    declare_outputs(p, output=POINTS_SUFFIXES, pulses=PULSES_SUFFIXES)
+    declare_outputs(p, output=LAS, pulses=PULSES)
 
 
 def run(args) -> int:

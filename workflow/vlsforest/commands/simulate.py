@@ -5,8 +5,7 @@ from __future__ import annotations
 import math
 import sys
 
-from vlsforest.commands import JSON, check_workers, declare_outputs
-from vlsforest.sim.output import HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES
+from vlsforest.commands import JSON, LAS, NPZ, PULSES, check_workers, declare_outputs
 
 
 def register(sub) -> None:
@@ -29,7 +28,7 @@ def register(sub) -> None:
     p.add_argument("--region-margin", type=float, default=1.0,
                    help="margin around the targets (m, default 1: the workflow's simulation.region_margin_m)")
     p.set_defaults(func=run)
-    declare_outputs(p, output=POINTS_SUFFIXES, pulses=PULSES_SUFFIXES, hits=HITS_SUFFIXES, timing=JSON)
+    declare_outputs(p, output=LAS, pulses=PULSES, hits=NPZ, timing=JSON)
 
 
 def run(args) -> int:
