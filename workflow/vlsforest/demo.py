@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 
 from vlsforest.errors import ConfigError
+from vlsforest.io.atomic import atomic_path, write_text
 from vlsforest.io.mesh import TriangleMesh, write_mesh
 
 
@@ -58,7 +59,7 @@ def conic_crown_voxels(base, height: float, cbh: float, radius: float, size: flo
 
 
 def write_demo(out_dir, seed: int = 0, voxel_size: float = 0.25, ground_z: float = 0.0,
-               half_extent: float = 20.0) -> Path:
+               half_extent: float = 20.0, name: str = "scene.yaml") -> Path:
     """Write the demo scene (``scene.yaml``, ``stem.obj``, ``crown.csv``) into ``out_dir``.
 
     Parameters
@@ -73,6 +74,8 @@ def write_demo(out_dir, seed: int = 0, voxel_size: float = 0.25, ground_z: float
         Ground elevation.
     half_extent : float
         Half side of the square ground plane around the tree (m).
+    name : str
+        File name of the scene description in ``out_dir``.
 
     Returns
     -------
@@ -82,12 +85,11 @@ def write_demo(out_dir, seed: int = 0, voxel_size: float = 0.25, ground_z: float
     if not voxel_size > 0:
         raise ConfigError(f"demo.voxel_size must be > 0, got {voxel_size!r}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     base = np.array([0.0, 0.0, ground_z])
     write_mesh(out / "stem.obj", stem_mesh(base, 24.0, 0.36))
     cen = conic_crown_voxels(base, 26.0, 6.0, 3.2, voxel_size, 0.45, rng)
-    with open(out / "crown.csv", "w") as fh:
+    with atomic_path(out / "crown.csv") as tmp, open(tmp, "w") as fh:
         fh.write("x,y,z\n")
         np.savetxt(fh, cen, fmt="%.6f", delimiter=",")
     scene = {"parts": [
@@ -97,6 +99,4 @@ def write_demo(out_dir, seed: int = 0, voxel_size: float = 0.25, ground_z: float
         {"id": 3, "type": "voxels", "path": "crown.csv", "size": float(voxel_size), "reflectance": 0.45,
          "classification": 5, "name": "crown"},
     ]}
-    path = out / "scene.yaml"
-    path.write_text(yaml.safe_dump(scene, sort_keys=False))
-    return path
+    return write_text(out / name, yaml.safe_dump(scene, sort_keys=False))

@@ -17,3 +17,7 @@ class ConfigError(VlsforestError):
 
 class InputDataError(VlsforestError):
     """An input data file is missing, corrupt, empty or lacks required fields (names the file)."""
+
+
+class OutputPathError(VlsforestError):
+    """An output path cannot be written (a folder, a wrong suffix, an unwritable place; names the path)."""

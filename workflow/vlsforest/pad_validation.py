@@ -37,6 +37,7 @@ import pandas as pd
 
 from vlsforest.domain.species import PAD_GROUPS, species_group
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.atomic import save_figure, write_csv
 from vlsforest.pad.estimate import estimate_pad
 from vlsforest.pad.traverse import Accumulators
 
@@ -259,7 +260,6 @@ def plot_validation(table: pd.DataFrame, path) -> Path:
     import matplotlib.pyplot as plt
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     plots = ", ".join(sorted(table["plot"].astype(str).unique()))
     table = _pool_plots(table)
     bands = [b for b in ("below_crown", "lower", "middle", "upper", "crown") if b in set(table["height_band"])]
@@ -295,8 +295,10 @@ def plot_validation(table: pd.DataFrame, path) -> Path:
     axes[2].legend(fontsize=7)
     fig.suptitle(f"TLS PAD vs virtual truth, plot(s) {plots}")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, metadata={"Software": None})
-    plt.close(fig)
+    try:
+        save_figure(path, fig, dpi=120, metadata={"Software": None})
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -342,8 +344,7 @@ def validate_pad(acc: Accumulators, forest_dir, plot: str, estimators=("transmit
     table = summarize(voxels, plot, estimators, min_shots)
     if table_path is not None:
         table_path = Path(table_path)
-        table_path.parent.mkdir(parents=True, exist_ok=True)
-        table.to_csv(table_path, index=False, float_format="%.6f", na_rep="NaN", lineterminator="\n")
+        write_csv(table_path, table, index=False, float_format="%.6f", na_rep="NaN", lineterminator="\n")
     if figure_path is not None:
         plot_validation(table, figure_path)
     return table, voxels

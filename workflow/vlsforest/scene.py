@@ -31,7 +31,7 @@ import yaml
 from vlsforest.domain.cubes import cube_triangles
 from vlsforest.domain.labels import GROUND_ID, SURROUNDING_ID, object_ids
 from vlsforest.errors import ConfigError, InputDataError
-from vlsforest.io.voxel_model import VoxelModel, model_vox
+from vlsforest.io.voxel_model import VoxelModel
 
 #: default reflectances of scene materials (fractions at the scanner wavelength)
 DEFAULT_REFLECTANCE = {"foliage": 0.45, "wood": 0.35, "ground": 0.3}
@@ -100,7 +100,6 @@ def assemble_scene(out: Path, model: VoxelModel, targets, stems: dict, ground_z:
         The SCENE.yaml.
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     refl = dict(DEFAULT_REFLECTANCE)
     for k, v in (reflectance or {}).items():
         if k not in refl:
@@ -134,18 +133,25 @@ def assemble_scene(out: Path, model: VoxelModel, targets, stems: dict, ground_z:
         parts.append({"id": SURROUNDING_ID, "type": "voxels", "path": "surrounding.npz",
                       "reflectance": refl["foliage"], "classification": 5, "name": "surrounding"})
     doc = {"name": method, "voxel_backend": "auto", "parts": parts}
-    out.write_text(yaml.safe_dump(doc, sort_keys=False))
-    return out
+    from vlsforest.io.atomic import write_text
+
+    return write_text(out, yaml.safe_dump(doc, sort_keys=False))
 
 
 def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Path:
-    """Write a SCENE.yaml (as made by :func:`assemble_scene`) as a HELIOS++ scene.
+    """Write a SCENE.yaml as a HELIOS++ scene: every part type the simulator reads.
+
+    The scene is read by the simulator's own reader (:meth:`vlsforest.sim.Scene.from_yaml`),
+    so every part it accepts is exported, and a bad part fails before anything is written:
+    planes and meshes as OBJ, voxels in full cells as a ``.vox`` (``fixed`` mode), cubes
+    scaled about their cell centres as a ``.vox`` (``scaled`` mode), other cubes as OBJ cubes.
 
     Parameters
     ----------
     scene_yaml : path
     out_dir : path
-        Folder for ``scene.xml`` and its parts (``part_{id}.obj`` / ``part_{id}.vox``).
+        Folder for ``scene.xml`` and its parts (``part_{id}.obj`` / ``part_{id}.vox``); it
+        appears whole or not at all (:func:`vlsforest.io.atomic.atomic_dir`).
     scene_id : str
         The XML scene id.
 
@@ -155,75 +161,72 @@ def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Pat
         ``out_dir/scene.xml``. Part ids are our object ids, so HELIOS++'s ``hitObjectId`` matches
         our ``object_id``.
     """
-    from vlsforest.io.mesh import TriangleMesh, read_mesh, write_mesh
-    from vlsforest.io.vox import write_vox
+    from vlsforest.io.atomic import atomic_dir, write_text
+    from vlsforest.io.mesh import TriangleMesh, write_mesh
+    from vlsforest.io.vox import make_vox, write_vox
+    from vlsforest.sim.scene import Scene
 
     scene_yaml = Path(scene_yaml)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    scene = Scene.from_yaml(scene_yaml)
     doc = yaml.safe_load(scene_yaml.read_text())
-    if not isinstance(doc, dict) or not isinstance(doc.get("parts"), list):
-        raise InputDataError(f"{scene_yaml}: not a SCENE.yaml with parts")
     lines = ['<?xml version="1.0" encoding="UTF-8"?>', "<document>",
              f"  <scene id={quoteattr(scene_id)} name={quoteattr(str(doc.get('name') or scene_id))}>"]
 
-    def material(p):
-        return (f'      <!-- reflectance {p.get("reflectance", 0.5)} at the scanner wavelength; '
-                f'classification {p.get("classification", 1)} -->')
+    def material(part):
+        return (f"      <!-- reflectance {part.material.reflectance} at the scanner wavelength; "
+                f"classification {part.classification} -->")
 
-    for p in doc["parts"]:
-        pid, kind = int(p["id"]), p["type"]
-        lines.append(f'    <part id="{pid}">')
-        if kind == "plane":
-            x0, y0, x1, y1 = p["extent"]
-            z = float(p["z"])
-            v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
-            f = np.array([[0, 1, 2], [0, 2, 3]])
-            fname = f"part_{pid}.obj"
-            write_mesh(out_dir / fname, TriangleMesh(v, f))
-            lines += ['      <filter type="objloader">',
-                      f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-                      "      </filter>", material(p)]
-        elif kind == "mesh":
-            mesh = read_mesh(scene_yaml.parent / p["path"])
-            fname = f"part_{pid}.obj"
-            write_mesh(out_dir / fname, mesh)
-            lines += ['      <filter type="objloader">',
-                      f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-                      "      </filter>", material(p)]
-        elif kind == "voxels" and str(p.get("path", "")).endswith(".npz"):
-            model = VoxelModel.load(scene_yaml.parent / p["path"])
-            shifted = model.centre is not None and not np.allclose(model.centre, (model.ijk + 0.5) * model.size)
-            if model.half is None:
-                fname = f"part_{pid}.vox"
-                write_vox(out_dir / fname, model_vox(model, None))
-                lines += ['      <filter type="detailedVoxels">',
-                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-                          '        <param type="string" key="intersectionMode" value="fixed" />',
-                          "      </filter>", material(p)]
-            elif not shifted:
-                fname = f"part_{pid}.vox"
-                write_vox(out_dir / fname, model_vox(model, 1.0))
-                lines += ['      <filter type="detailedVoxels">',
-                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-                          '        <param type="string" key="intersectionMode" value="scaled" />',
-                          '        <param type="double" key="intersectionArgument" value="0.5" />',
-                          "      </filter>", material(p)]
-            else:
-                v, f = cube_triangles(model.centres(), 0.5 * model.sides())
+    def obj_filter(fname):
+        return ['      <filter type="objloader">',
+                f'        <param type="string" key="filepath" value={quoteattr(fname)} />', "      </filter>"]
+
+    def vox_filter(fname, mode):
+        out = ['      <filter type="detailedVoxels">',
+               f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
+               f'        <param type="string" key="intersectionMode" value="{mode}" />']
+        if mode == "scaled":
+            out.append('        <param type="double" key="intersectionArgument" value="0.5" />')
+        return out + ["      </filter>"]
+
+    with atomic_dir(out_dir) as tmp:
+        for g in scene.part_geometries():
+            part = g["part"]
+            pid = part.object_id
+            lines.append(f'    <part id="{pid}">')
+            if g["kind"] == "plane":
+                x0, y0, x1, y1 = g["extent"]
+                z = float(g["z"])
+                v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
                 fname = f"part_{pid}.obj"
-                write_mesh(out_dir / fname, TriangleMesh(v, f))
-                lines += ['      <filter type="objloader">',
-                          f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-                          "      </filter>", material(p)]
-        else:
-            raise InputDataError(f"{scene_yaml}: part {pid} of type {kind!r} cannot be exported "
-                                 "(only planes, meshes and .npz voxel models)")
-        lines.append("    </part>")
-    lines += ["  </scene>", "</document>", ""]
-    xml = out_dir / "scene.xml"
-    xml.write_text("\n".join(lines))
-    return xml
+                write_mesh(tmp / fname, TriangleMesh(v, np.array([[0, 1, 2], [0, 2, 3]])))
+                lines += obj_filter(fname)
+            elif g["kind"] == "mesh":
+                fname = f"part_{pid}.obj"
+                write_mesh(tmp / fname, TriangleMesh(g["vertices"], g["faces"]))
+                lines += obj_filter(fname)
+            else:
+                ijk, size, half, centre = g["ijk"], g["size"], g["half"], g["centre"]
+                origin = np.asarray(g["origin"], dtype=np.float64)
+                centred = centre is None or np.allclose(centre, origin + (ijk + 0.5) * size)
+                if half is None or centred:
+                    lo = ijk.min(axis=0)
+                    cols, pad_max, mode = {}, None, "fixed"
+                    if half is not None:  # HELIOS++ scaled side size·(PAD/pad_max)^0.5 = 2·half
+                        cols, pad_max, mode = {"PadBVTotal": (2.0 * half / size) ** 2}, 1.0, "scaled"
+                    fname = f"part_{pid}.vox"
+                    write_vox(tmp / fname, make_vox(ijk - lo, size, origin + lo * size, cols, max_pad=pad_max,
+                                                    header={"type": "TLS", "build-version": "1.4.3"}))
+                    lines += vox_filter(fname, mode)
+                else:
+                    v, f = cube_triangles(centre, half)
+                    fname = f"part_{pid}.obj"
+                    write_mesh(tmp / fname, TriangleMesh(v, f))
+                    lines += obj_filter(fname)
+            lines += [material(part), "    </part>"]
+        lines += ["  </scene>", "</document>", ""]
+        write_text(tmp / "scene.xml", "\n".join(lines))
+    return out_dir / "scene.xml"
 
 
 __all__ = ["DEFAULT_REFLECTANCE", "assemble_scene", "crown_points", "export_helios"]

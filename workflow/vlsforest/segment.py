@@ -59,6 +59,12 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.atomic import atomic_path, make_folder, write_csv
+from vlsforest.io.npz import ArraySpec, load_npz
+
+#: the arrays of a terrain model file (:meth:`Dtm.save`)
+DTM_SPEC = {"z": ArraySpec("f", ("ny", "nx"), finite=False), "measured": ArraySpec("b", ("ny", "nx")),
+            "x0": ArraySpec("f", ()), "y0": ArraySpec("f", ()), "cell": ArraySpec("f", ())}
 
 #: columns of the tree table
 TREE_COLUMNS = ("tree_id", "x", "y", "z", "dbh", "height", "n_points")
@@ -264,8 +270,7 @@ class Dtm:
         ``x0``, ``y0``, ``cell``; ``z[j, i]`` is the elevation at the centre
         ``(x0 + (i + 0.5) cell, y0 + (j + 0.5) cell)``."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(
                 fh, z=self.z, measured=self.measured, x0=np.float64(self.x0), y0=np.float64(self.y0),
                 cell=np.float64(self.cell),
@@ -275,14 +280,10 @@ class Dtm:
     @classmethod
     def load(cls, path) -> "Dtm":
         """Read a file written by :meth:`save`."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputDataError(f"{path}: no such file")
-        try:
-            with np.load(path) as d:
-                return cls(float(d["x0"]), float(d["y0"]), float(d["cell"]), d["z"], d["measured"])
-        except (KeyError, ValueError, OSError) as exc:
-            raise InputDataError(f"{path}: not a terrain model file ({exc})") from None
+        d = load_npz(path, DTM_SPEC, "terrain model")
+        if not float(d["cell"]) > 0:
+            raise InputDataError(f"{path}: array 'cell' must be > 0, got {float(d['cell'])!r}")
+        return cls(float(d["x0"]), float(d["y0"]), float(d["cell"]), d["z"], d["measured"])
 
 
 def _grid_index(xy: np.ndarray, x0: float, y0: float, cell: float, nx: int) -> np.ndarray:
@@ -1031,16 +1032,14 @@ def segment_files(paths, outdir, config: SegmentConfig | None = None, write_tree
         print(f"segment: read {len(cloud)} points from {len(paths)} file(s) in {t1 - t0:.1f} s", file=sys.stderr)
     res = segment_cloud(cloud, config, source)
     t2 = time.perf_counter()
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(outdir)
     wc = _writable(cloud)
     wc.attrs["classification"] = res.classification
     write_las(out / "segmented.laz", wc, extra={"tree_id": res.tree_id})
-    res.trees.to_csv(out / "trees.csv", index=False, float_format="%.4f", lineterminator="\n")
+    write_csv(out / "trees.csv", res.trees, index=False, float_format="%.4f", lineterminator="\n")
     res.dtm.save(out / "dtm.npz")
     if write_trees:
-        tdir = out / "trees"
-        tdir.mkdir(exist_ok=True)
+        tdir = make_folder(out / "trees")
         for old in tdir.glob("*.laz"):
             old.unlink()
         order = np.argsort(res.tree_id, kind="stable")

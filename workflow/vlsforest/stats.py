@@ -62,6 +62,7 @@ from scipy import stats as _st
 
 from vlsforest.domain.species import GROUPS, species_group
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.atomic import write_csv, write_text
 from vlsforest.metrics import METRIC_COLUMNS
 
 __all__ = [
@@ -1068,8 +1069,7 @@ def findings_markdown(findings: list[dict]) -> str:
 
 
 def _write_csv(df: pd.DataFrame, path: Path) -> Path:
-    df.to_csv(path, index=False, float_format=FLOAT_FORMAT, na_rep="NaN", lineterminator="\n")
-    return path
+    return write_csv(path, df, index=False, float_format=FLOAT_FORMAT, na_rep="NaN", lineterminator="\n")
 
 
 #: the files of ``vlsforest stats``: key → file name inside an output folder
@@ -1142,8 +1142,6 @@ def write_stats(metrics_path, voxel_counts_path, sim_times_path, outputs, *, see
     mr = multireturn_ttest(metrics, source=str(metrics_path))
     t5 = table5(errors, vc, st, sources=(str(metrics_path), str(voxel_counts_path), str(sim_times_path)))
     findings = evaluate_findings(errors, tests, mr, t5, vc)
-    for path in files.values():
-        path.parent.mkdir(parents=True, exist_ok=True)
     paths = {
         "errors": _write_csv(errors, files["errors"]),
         "summary_by_species": _write_csv(summary, files["summary_by_species"]),
@@ -1152,6 +1150,6 @@ def write_stats(metrics_path, voxel_counts_path, sim_times_path, outputs, *, see
         "table5": _write_csv(t5, files["table5"]),
     }
     fp = files["findings"]
-    fp.write_text(findings_markdown(findings), encoding="utf-8", newline="\n")
+    write_text(fp, findings_markdown(findings))
     paths["findings"] = fp
     return paths

@@ -441,10 +441,43 @@ def build_model(method: dict, inputs: ModelInputs, name: str = "method") -> Voxe
     if kind not in METHOD_KINDS:
         raise ConfigError(f"methods.{name}.kind: unknown kind {kind!r} (registered: {sorted(METHOD_KINDS)})")
     params = {k: v for k, v in method.items() if k not in ("kind", "description")}
-    try:
-        return METHOD_KINDS[kind](inputs, **params)
-    except TypeError as exc:
-        raise ConfigError(f"methods.{name}: {exc}") from None
+    check_method_keys(METHOD_KINDS[kind], params, f"methods.{name}", kind)
+    return METHOD_KINDS[kind](inputs, **params)
+
+
+def check_method_keys(func, params: dict, where: str, kind: str) -> None:
+    """Refuse keys that a method kind's function does not take, and missing required ones.
+
+    The keys are compared with the function's signature (its first parameter takes the
+    :class:`ModelInputs`), so a method registered from elsewhere is checked the same way.
+
+    Raises
+    ------
+    ConfigError
+        Naming the config entry, the key and the keys the kind takes.
+    """
+    import inspect
+
+    sig = list(inspect.signature(func).parameters.values())[1:]
+    if any(p.kind is p.VAR_KEYWORD for p in sig):
+        return
+    known = [p.name for p in sig if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} for kind {kind!r} "
+                          f"(it takes {', '.join(known) or 'no keys'})")
+    missing = [p.name for p in sig if p.name in known and p.default is p.empty and p.name not in params]
+    if missing:
+        raise ConfigError(f"{where}: kind {kind!r} needs the key(s) {', '.join(missing)}")
+    for p in sig:  # a value of another type than the key's default (a number, a name)
+        if p.name not in params or p.default is p.empty or p.default is None:
+            continue
+        v, d = params[p.name], p.default
+        number = isinstance(d, (int, float)) and not isinstance(d, bool)
+        if number and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ConfigError(f"{where}.{p.name}: must be a number, got {v!r}")
+        if isinstance(d, str) and not isinstance(v, str):
+            raise ConfigError(f"{where}.{p.name}: must be a name (text), got {v!r}")
 
 
 __all__ = [

@@ -22,6 +22,9 @@ import argparse
 import json
 from pathlib import Path
 
+from vlsforest.commands import CSV, PNG, declare_outputs
+from vlsforest.io.atomic import write_csv
+
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``collect`` sub-command."""
@@ -32,6 +35,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, type=Path)
     p.add_argument("--figure", type=Path, default=None, help="pad: also draw the validation figure")
     p.set_defaults(func=run)
+    declare_outputs(p, output=CSV, figure=PNG)
     return p
 
 
@@ -106,7 +110,6 @@ def run(args) -> int:
             rows.append({"plot": plot, "method": method, "scenario": scenario, "seconds": float(t["total"]),
                          "n_pulses": int(t.get("n_pulses", 0)), "n_points": int(t.get("n_points", 0))})
         out = pd.DataFrame(rows).sort_values(["plot", "method", "scenario"], kind="stable")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    out.to_csv(args.output, index=False, float_format="%.6f", na_rep="NaN", lineterminator="\n")
+    write_csv(args.output, out, index=False, float_format="%.6f", na_rep="NaN", lineterminator="\n")
     print(f"collect {args.what}: {len(out)} rows -> {args.output}")
     return 0

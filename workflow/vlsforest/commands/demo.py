@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from vlsforest.commands import YAML, declare_outputs
 from vlsforest.errors import ConfigError
 
 
@@ -19,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--plot-json", default=None, help="plot config block as JSON (workflow use)")
     p.add_argument("--method-json", default=None, help="method config block as JSON (workflow use)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=YAML)
 
 
 def _json(text, what):
@@ -41,10 +43,6 @@ def run(args) -> int:
     method = _json(args.method_json, "method")
     size = args.voxel_size if args.voxel_size is not None else float(method.get("voxel_size", 0.25))
     out = Path(args.output)
-    if out.suffix not in (".yaml", ".yml"):
-        raise ConfigError(f"-o must name a .yaml file, got {out}")
-    path = write_demo(out.parent, seed=args.seed, voxel_size=size, ground_z=float(plot.get("ground_z", 0.0)),
-                      half_extent=float(plot.get("half_extent_m", 20.0)))
-    if path != out:
-        path.rename(out)
+    write_demo(out.parent, seed=args.seed, voxel_size=size, ground_z=float(plot.get("ground_z", 0.0)),
+               half_extent=float(plot.get("half_extent_m", 20.0)), name=out.name)
     return 0

@@ -6,7 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from vlsforest.commands import check_workers
+from vlsforest.commands import JSON, PNG, YAML, check_workers, declare_outputs
+from vlsforest.io.atomic import write_text
 
 
 def register(sub) -> None:
@@ -36,6 +37,7 @@ def register(sub) -> None:
                         "not depend on it)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
+    declare_outputs(p, output=JSON, figure=PNG, write_sim_config=YAML)
 
 
 def run(args) -> int:
@@ -60,13 +62,12 @@ def run(args) -> int:
 
         d = json.loads(args.sim_config_json) if args.sim_config_json is not None else \
             yaml.safe_load(Path(args.sim_config).read_text())
-        Path(args.write_sim_config).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.write_sim_config).write_text(yaml.safe_dump(d, sort_keys=True))
+        write_text(args.write_sim_config, yaml.safe_dump(d, sort_keys=True))
     out = Path(args.output)
     # traces a later stage reads back wait beside the output, in a folder deleted at the end
     # (diagnose makes the output's folder, or says clearly why it cannot)
     rep = diagnose(setup, log=(lambda m: None) if args.quiet else None, work_dir=out.parent)
-    out.write_text(json.dumps(rep, indent=1, sort_keys=True) + "\n")
+    write_text(out, json.dumps(rep, indent=1, sort_keys=True) + "\n")
     if args.figure:
         from vlsforest.diagnose.figure import plot_diagnosis
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vlsforest.commands import CSV, LAS, declare_outputs
 from vlsforest.commands.metrics import add_metric_options
 
 
@@ -42,6 +43,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                        help="also write the target trees' metrics (vlsforest metrics; heights above "
                             "each target's ground z of the targets table)")
         add_metric_options(q)
+        declare_outputs(q, output=LAS, metrics=CSV)
     p.set_defaults(func=run)
     return p
 
@@ -78,12 +80,13 @@ def run(args) -> int:
     from vlsforest.commands.metrics import ground_table, write_metrics
     from vlsforest.errors import InputDataError
     from vlsforest.extract import extract_reference, extract_simulated
-    from vlsforest.io.las import read_las, write_las
     from vlsforest.domain.labels import object_ids
+    from vlsforest.io.atomic import flush
+    from vlsforest.io.las import read_las, write_las
 
     targets = _targets(args.targets)
     ground = ground_table(args.targets, "target_id") if args.metrics is not None else None
-    cloud = read_las(args.cloud, allow_empty=True)
+    cloud = read_las(args.cloud, allow_empty=True, require=("object_id",) if args.what == "sim" else ())
     seg_to_target = dict(zip(targets.tree_id.astype(int), targets.target_id.astype(int)))
     if args.what == "reference":
         pts = {}
@@ -108,12 +111,17 @@ def run(args) -> int:
                 id_map[oid] = tid
         lab = extract_simulated(cloud, id_map)
     keep = lab > 0
+    if not keep.any():
+        raise InputDataError(f"{args.cloud}: none of the targets has a point in the cloud (target ids "
+                             f"{', '.join(str(int(t)) for t in targets.target_id)}; tree ids "
+                             f"{', '.join(str(int(t)) for t in targets.tree_id)})")
     out = cloud.subset(keep)
     tree = np.array([seg_to_target[int(t)] for t in lab[keep]], dtype=np.int32)
     write_las(args.output, out, extra={"tree_id": tree})
     counts = {int(t): int((tree == t).sum()) for t in targets.target_id}
     print(f"extract {args.what}: {int(keep.sum())} of {len(cloud)} points in {len(counts)} target trees {counts}")
     if args.metrics is not None:  # from the file as written (LAS-quantised), like a later `metrics` run
+        flush()  # the metrics read the file just written
         df = write_metrics(read_las(args.output, allow_empty=True), "tree_id", ground, args.metrics,
                            source=str(args.output), multi_return=args.multi_return,
                            cbh_convention=args.cbh_convention, prog="vlsforest extract")

@@ -13,7 +13,11 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
+
+from vlsforest.commands import CSV, declare_outputs
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.atomic import write_csv
 
 #: fixed float format of the CSV
 FLOAT_FORMAT = "%.6f"
@@ -40,6 +44,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT.csv", help="output CSV")
     add_metric_options(p)
     p.set_defaults(func=run)
+    declare_outputs(p, output=CSV)
     return p
 
 
@@ -88,6 +93,9 @@ def write_metrics(cloud, tree_field: str, ground, output: Path, *, source: str, 
     if tree_field not in cloud.attrs:
         raise InputDataError(f"{source}: no tree-id field {tree_field!r} (fields: {', '.join(sorted(cloud.attrs))})")
     tree_ids = sorted(ground) if isinstance(ground, dict) else None
+    if tree_ids and not np.isin(cloud.attrs[tree_field], tree_ids).any():
+        raise InputDataError(f"{source}: none of the trees {', '.join(map(str, tree_ids))} has a point in "
+                             f"{tree_field!r}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         df = cloud_metrics(
@@ -109,9 +117,7 @@ def write_metrics(cloud, tree_field: str, ground, output: Path, *, source: str, 
             print(f"{prog}: warning: {msg}", file=sys.stderr)
     if df.empty:
         print(f"{prog}: warning: {source}: no point has a tree id in {tree_field!r}", file=sys.stderr)
-    out = Path(output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out, index=False, float_format=FLOAT_FORMAT, na_rep="NaN", lineterminator="\n")
+    write_csv(Path(output), df, index=False, float_format=FLOAT_FORMAT, na_rep="NaN", lineterminator="\n")
     return df
 
 

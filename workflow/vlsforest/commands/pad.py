@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from vlsforest.commands import CSV, PNG, declare_outputs
 from vlsforest.errors import ConfigError
 
 
@@ -59,6 +60,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--min-shots", type=int, default=20, metavar="N",
                    help="validation: voxels crossed by fewer shots are left out of bias/RMSE (default 20)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=(".vox",), table=CSV, figure=PNG)
     return p
 
 
@@ -103,6 +105,12 @@ def run(args) -> int:
         raise ConfigError(f"--min-pulses: must be ≥ 1, got {args.min_pulses}")
     if args.min_shots < 1:
         raise ConfigError(f"--min-shots: must be ≥ 1, got {args.min_shots}")
+    if args.validate is not None:  # the validation outputs named after -o are checked up front too
+        from vlsforest.io.atomic import check_output_path
+
+        stem = args.output.with_suffix("")
+        check_output_path(args.table or Path(f"{stem}_validation.csv"), CSV, "--table")
+        check_output_path(args.figure or Path(f"{stem}_validation.png"), PNG, "--figure")
     t0 = time.perf_counter()
     scans = load_tls_scans(args.tls_dir, scan_ids=args.scans, blind_radius=args.blind_radius)
     n_blind = sum(sc.blind_shots for sc in scans)

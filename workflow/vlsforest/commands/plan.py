@@ -6,7 +6,10 @@ import json
 
 import yaml
 
+from vlsforest.commands import YAML, declare_outputs
 from vlsforest.errors import ConfigError
+from vlsforest.io.atomic import write_text
+from vlsforest.io.yamlfile import read_yaml
 
 
 def register(sub) -> None:
@@ -24,6 +27,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="survey seed (noise)")
     p.add_argument("-o", "--output", required=True, help="SURVEY.yaml to write")
     p.set_defaults(func=run)
+    declare_outputs(p, output=YAML)
 
 
 def run(args) -> int:
@@ -40,10 +44,7 @@ def run(args) -> int:
         except json.JSONDecodeError as exc:
             raise ConfigError(f"--scenario-json is not valid JSON: {exc}") from None
     else:
-        path = Path(args.scenario)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such scenario file")
-        scenario = yaml.safe_load(path.read_text())
+        scenario = read_yaml(args.scenario, "scenario")
     if not isinstance(scenario, dict):
         raise ConfigError("the scenario must be a mapping")
     if scenario.get("pattern") == "trajectory" or args.trajectory:
@@ -71,6 +72,5 @@ def run(args) -> int:
         survey["seed"] = int(args.seed)
     survey_from_dict(survey)  # validate before writing
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(yaml.safe_dump(survey, sort_keys=False))
+    write_text(out, yaml.safe_dump(survey, sort_keys=False))
     return 0

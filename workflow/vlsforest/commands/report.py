@@ -13,6 +13,7 @@ import math
 import sys
 from pathlib import Path
 
+from vlsforest.commands import FOLDER, declare_outputs
 from vlsforest.errors import ConfigError
 
 
@@ -41,6 +42,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     f.add_argument("--tree-id", type=float, default=None, help="value of --tree-field to keep")
     f.add_argument("--seed", type=int, default=0, help="bootstrap seed of the CI bands (default 0)")
     f.set_defaults(func=run_figures)
+    declare_outputs(f, output=FOLDER)
     return p
 
 

@@ -21,6 +21,8 @@ import argparse
 import json
 from pathlib import Path
 
+from vlsforest.commands import CSV, FOLDER, NPZ, YAML, declare_outputs
+
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``scene`` sub-command."""
@@ -33,11 +35,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     t.add_argument("--plot-json", required=True, type=Path, help="plot description with 'targets'")
     t.add_argument("--max-dist", type=float, default=1.0, help="largest stem-position mismatch (m)")
     t.add_argument("-o", "--output", required=True, type=Path, help="targets.csv (site.json beside it)")
+    declare_outputs(t, output=CSV)
     c = sub.add_parser("crowns", help="TLS points to voxelise, with tree ids")
     c.add_argument("segment", type=Path)
     c.add_argument("--stems", required=True, type=Path, help="stems folder ({tree_id}/stem_points.laz)")
     c.add_argument("--targets", required=True, type=Path)
     c.add_argument("-o", "--output", required=True, type=Path, help="crowns.npz")
+    declare_outputs(c, output=NPZ)
     b = sub.add_parser("build", help="write SCENE.yaml for a voxel model")
     b.add_argument("--voxels", required=True, type=Path, help="voxel model .npz (vlsforest voxels)")
     b.add_argument("--targets", required=True, type=Path)
@@ -47,9 +51,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--method", default="", help="method name (recorded in the scene)")
     b.add_argument("--helios", type=Path, default=None, help="also export HELIOS++ scene XML into this folder")
     b.add_argument("-o", "--output", required=True, type=Path, help="SCENE.yaml")
+    declare_outputs(b, output=YAML, helios=FOLDER)
     h = sub.add_parser("helios", help="export a SCENE.yaml as HELIOS++ scene XML")
     h.add_argument("scene", type=Path)
     h.add_argument("-o", "--output", required=True, type=Path, help="output folder")
+    declare_outputs(h, output=FOLDER)
     p.set_defaults(func=run)
     return p
 
@@ -87,6 +93,7 @@ def run(args) -> int:
     import numpy as np
 
     from vlsforest.errors import ConfigError, InputDataError
+    from vlsforest.io.atomic import flush, write_csv, write_text
     from vlsforest.io.las import read_las
 
     if args.what == "targets":
@@ -97,8 +104,7 @@ def run(args) -> int:
         if not isinstance(info, dict) or not info.get("targets"):
             raise InputDataError(f"{args.plot_json}: needs a non-empty 'targets' list")
         df = match_targets(trees, info["targets"], args.max_dist, source=str(args.segment / "trees.csv"))
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        df.to_csv(args.output, index=False, float_format="%.6f")
+        write_csv(args.output, df, index=False, float_format="%.6f")
         seg = read_las(args.segment / "segmented.laz", require=("classification",))
         ground = seg.attrs["classification"] == 2
         if ground.sum() < 3:
@@ -111,7 +117,7 @@ def run(args) -> int:
                 "extent": [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])],
                 "targets_extent": [float(tlo[0]), float(tlo[1]), float(thi[0]), float(thi[1])],
                 "n_targets": int(len(df))}
-        (args.output.parent / "site.json").write_text(json.dumps(site, indent=1) + "\n")
+        write_text(args.output.parent / "site.json", json.dumps(site, indent=1) + "\n")
         print(df.to_string(index=False))
         return 0
     if args.what == "crowns":
@@ -144,6 +150,7 @@ def run(args) -> int:
                 raise ConfigError(f"--reflectance-json: {exc}") from None
         out = assemble_scene(args.output, model, targets, stems, site["ground_z"], site["extent"], refl, args.method)
         if args.helios is not None:
+            flush()  # the export reads the scene just written
             export_helios(out, args.helios, scene_id=args.method or "vlsforest")
         print(f"scene: {out} ({model.n_voxels} voxels)")
         return 0

@@ -12,6 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from vlsforest.commands import FOLDER, declare_outputs
+
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``segment`` sub-command to ``subparsers``."""
@@ -50,6 +52,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="settings as a JSON object (workflow use; keys as SegmentConfig, e.g. graph_radius); "
                         "replaces the options above")
     p.set_defaults(func=run)
+    declare_outputs(p, output=FOLDER)
     return p
 
 

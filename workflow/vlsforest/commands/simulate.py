@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import sys
 
-from vlsforest.commands import check_workers
+from vlsforest.commands import JSON, LAS, NPZ, PULSES, check_workers, declare_outputs
 
 
 def register(sub) -> None:
@@ -28,10 +28,12 @@ def register(sub) -> None:
     p.add_argument("--region-margin", type=float, default=1.0,
                    help="margin around the targets (m, default 1: the workflow's simulation.region_margin_m)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=LAS, pulses=PULSES, hits=NPZ, timing=JSON)
 
 
 def run(args) -> int:
     """Execute ``vlsforest simulate``."""
+    from vlsforest.io.atomic import write_text
     from vlsforest.sim import Scene, load_survey, save_hits, simulate, write_points, write_pulses
 
     if not args.region_margin >= 0:
@@ -68,15 +70,13 @@ def run(args) -> int:
     if args.pulses:
         write_pulses(args.pulses, res)
     if args.hits:
-        save_hits(args.hits, res, scene)
+        save_hits(args.hits, res, scene, survey.scanner)
     t = res.timings
     if args.timing:
         import json
-        from pathlib import Path
 
-        Path(args.timing).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.timing).write_text(json.dumps({k: (float(v) if isinstance(v, float) else v)
-                                                 for k, v in t.items()}, indent=1, sort_keys=True) + "\n")
+        write_text(args.timing, json.dumps({k: (float(v) if isinstance(v, float) else v)
+                                            for k, v in t.items()}, indent=1, sort_keys=True) + "\n")
     if not args.quiet:
         print(f"simulate: {t['n_pulses']} pulses, {t['n_points']} points in {t['total']:.1f} s "
               f"({t['n_pulses'] / max(t['total'], 1e-9):,.0f} pulses/s) → {args.output}", file=sys.stderr)

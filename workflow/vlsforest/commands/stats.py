@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vlsforest.commands import FOLDER, declare_outputs
 from vlsforest.errors import ConfigError
 
 
@@ -48,6 +49,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--n-boot", type=int, default=2000, help="bootstrap resamples (default 2000, at least 100)")
     p.set_defaults(func=run)
+    declare_outputs(p, output=FOLDER, **{f"out_{key}": None for key, _, _ in OUT_OPTIONS})
     return p
 
 

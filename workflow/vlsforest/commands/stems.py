@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlsforest.commands import FOLDER, declare_outputs
 from vlsforest.errors import ConfigError, InputDataError
 
 #: keys of the ``stems`` config block: the depth, :func:`vlsforest.stems.trace_stem` and
@@ -65,6 +66,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUTDIR", help="output folder")
     p.set_defaults(func=run)
+    declare_outputs(p, output=FOLDER)
     return p
 
 
@@ -116,6 +118,7 @@ def _settings(args) -> dict:
 
 def _one_tree(path: Path, scans_path: Path, scanners: dict, base, dbh, cfg: dict, out: Path) -> dict:
     """Stem of one tree file into ``out``; returns the summary written to ``stem.json``."""
+    from vlsforest.io.atomic import make_folder, write_text
     from vlsforest.io.las import read_las, write_las
     from vlsforest.io.mesh import write_mesh
     from vlsforest.stems import build_stem
@@ -129,7 +132,7 @@ def _one_tree(path: Path, scans_path: Path, scanners: dict, base, dbh, cfg: dict
         mesh_options={k: cfg[k] for k in MESH_KEYS if k in cfg},
     )
     t1 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     write_mesh(out / "stem.ply", result.mesh)
     write_mesh(out / "stem.obj", result.mesh)
     idx = np.flatnonzero(result.mask).astype(np.uint32)
@@ -142,7 +145,7 @@ def _one_tree(path: Path, scans_path: Path, scanners: dict, base, dbh, cfg: dict
     summary.update({"input": str(path), "scans": str(scans_path), "settings": {k: cfg[k] for k in sorted(cfg)}})
     print(f"vlsforest stems: {path}: " + ", ".join(f"{k[5:-2]} {v:.2f} s" for k, v in timings.items()),
           file=sys.stderr)
-    (out / "stem.json").write_text(json.dumps(_json_ready(summary), indent=2, sort_keys=True) + "\n")
+    write_text(out / "stem.json", json.dumps(_json_ready(summary), indent=2, sort_keys=True) + "\n")
     return summary
 
 

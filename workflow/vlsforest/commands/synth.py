@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
-
-from vlsforest.commands import check_workers
+from vlsforest.commands import FOLDER, check_workers, declare_outputs
 from vlsforest.errors import ConfigError
+from vlsforest.io.yamlfile import read_yaml
 
 
 def register(sub) -> None:
@@ -31,6 +30,7 @@ def register(sub) -> None:
                    help="CPUs to use, ≥ 1 (default: one plot at a time, its simulations on all CPUs)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
+    declare_outputs(p, output=FOLDER)
 
 
 def run(args) -> int:
@@ -49,12 +49,7 @@ def run(args) -> int:
         where = "--config-json"
     else:
         path = Path(args.config)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such config file")
-        try:
-            cfg = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+        cfg = read_yaml(path, "config", empty={})
         where = str(path)
     if not isinstance(cfg, dict):
         raise ConfigError(f"{where}: the config must be a mapping")

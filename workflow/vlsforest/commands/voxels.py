@@ -13,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
+from vlsforest.commands import NPZ, declare_outputs
+
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``voxels`` sub-command."""
@@ -34,28 +36,21 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--vox", type=Path, default=None, help="also write the model as AMAPVox .vox")
     p.add_argument("-o", "--output", required=True, type=Path, help="voxels.npz")
     p.set_defaults(func=run)
+    declare_outputs(p, output=NPZ, vox=(".vox",))
     return p
 
 
 def run(args) -> int:
     """Execute ``vlsforest voxels``."""
-    import numpy as np
-
     from vlsforest.errors import ConfigError, InputDataError
+    from vlsforest.io.voxel_model import load_crowns
     from vlsforest.voxels import ModelInputs, PadGrid, build_model
 
     try:
         method = json.loads(args.method_json)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"--method-json: {exc}") from None
-    if not args.crowns.is_file():
-        raise InputDataError(f"{args.crowns}: no such crowns file")
-    with np.load(args.crowns) as z:
-        if not {"xyz", "owner"} <= set(z.files):
-            raise InputDataError(f"{args.crowns}: needs arrays xyz and owner")
-        xyz, owner = z["xyz"], z["owner"]
-    if len(xyz) == 0:
-        raise InputDataError(f"{args.crowns}: no crown points")
+    xyz, owner = load_crowns(args.crowns)
     species_of = {}
     if args.targets is not None:
         import pandas as pd

@@ -59,13 +59,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from vlsforest.diagnose import library as lib
 from vlsforest.diagnose import stats as st
 from vlsforest.diagnose.features import (FEATURES, GROUND_PAD_M, STRATUM, cloud_arrays, tree_features, tree_labeller,
                                          tree_table)
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.yamlfile import read_yaml
 
 ALPHA = 0.05
 PENALTY = 0.05          # explained-fraction penalty per parameter
@@ -151,12 +151,7 @@ def load_setup(path, real_dir=None, scenario=None) -> Setup:
         d, path = path, "sim-config"
     else:
         path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such sim-config file")
-        try:
-            d = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+        d = read_yaml(path, "sim-config", empty={})
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: must be a mapping")
     known = {"scenario", "recording", "seed", "folds", "candidates", "plots", "workers", "grid",

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlsforest.io.atomic import save_figure
 
 def plot_diagnosis(rep: dict, path) -> Path:
     """Bar chart of real − simulated per observable (before / after the accepted effects, the
@@ -39,7 +40,8 @@ def plot_diagnosis(rep: dict, path) -> Path:
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)
+    try:
+        save_figure(path, fig, metadata={"Software": None})
+    finally:
+        plt.close(fig)
     return path

@@ -21,6 +21,7 @@ import laspy
 import numpy as np
 
 from vlsforest.errors import InputDataError
+from vlsforest.io.atomic import atomic_path
 
 #: standard point-format-6 dimensions that :func:`write_las` fills from ``PointCloud.attrs``
 _STANDARD = {
@@ -110,12 +111,14 @@ def read_las(path, require: tuple[str, ...] = (), allow_empty: bool = False) -> 
     try:
         las = laspy.read(path)
     except Exception as exc:  # laspy/lazrs raise many types for corrupt data
-        raise InputDataError(f"{path}: not a readable LAS/LAZ file ({exc})") from None
+        raise InputDataError(f"{path}: not a readable LAS/LAZ file ({' '.join(str(exc).split())})") from None
+    _check_record_count(path, las.header)
     xyz = np.column_stack([np.asarray(las.x, float), np.asarray(las.y, float), np.asarray(las.z, float)])
     if len(xyz) == 0 and not allow_empty:
         raise InputDataError(f"{path}: the file holds no points")
     if not np.isfinite(xyz).all():
         raise InputDataError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates")
+    check_precision(path, xyz)
     names = set(las.point_format.dimension_names)
     missing = [r for r in require if r not in names]
     if missing:
@@ -133,6 +136,50 @@ def read_las(path, require: tuple[str, ...] = (), allow_empty: bool = False) -> 
     if "scan_angle" not in attrs and "scan_angle_rank" in attrs:
         attrs["scan_angle"] = attrs.pop("scan_angle_rank")
     return PointCloud(xyz, attrs)
+
+
+#: the finest detail the analyses need (m); coordinates whose float64 spacing is coarser are refused
+PRECISION_M = 0.01
+
+
+def check_precision(path, xyz: np.ndarray) -> None:
+    """Refuse coordinates so large that float64 cannot hold :data:`PRECISION_M` (1 cm) there.
+
+    Raises
+    ------
+    InputDataError
+        Naming the file, the largest coordinate and the resolution float64 has at it.
+    """
+    if len(xyz) == 0:
+        return
+    big = float(np.abs(xyz).max())
+    step = float(np.spacing(big))
+    if step > PRECISION_M:
+        raise InputDataError(f"{path}: coordinates reach {big:.6g} m, where float64 resolves only {step:.3g} m "
+                             f"(coarser than {PRECISION_M * 100:g} cm); shift the cloud towards the origin")
+
+
+def _check_record_count(path: Path, header) -> None:
+    """Warn when an uncompressed file holds more or fewer point records than its header says."""
+    import warnings
+
+    if header.are_points_compressed:
+        return
+    size = path.stat().st_size
+    end = size
+    start_evlr = getattr(header, "start_of_first_evlr", 0) or 0
+    if start_evlr and header.number_of_evlrs:
+        end = min(end, int(start_evlr))
+    rec = header.point_format.size
+    n_file = (end - int(header.offset_to_point_data)) // rec
+    if n_file != header.point_count:
+        warnings.warn(f"{path}: the header counts {header.point_count} points but the file holds "
+                      f"{max(n_file, 0)} point records; read {min(header.point_count, max(n_file, 0))}",
+                      DataWarning, stacklevel=3)
+
+
+class DataWarning(UserWarning):
+    """An input that is read, but whose inconsistency the user should know about."""
 
 
 def _creation_date() -> datetime.date:
@@ -164,7 +211,6 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
         The path written.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.creation_date = _creation_date()
     header.generating_software = "vlsforest"
@@ -213,7 +259,7 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     rec["bit_fields"] = bits
     rec["classification_flags"] = flags
     # straight to the writer: a LasData would compute the header's bounds and counts a second time
-    with open(path, "wb+") as out, laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz",
-                                                    closefd=False) as writer:
+    with atomic_path(path) as tmp, open(tmp, "wb+") as out, \
+            laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz", closefd=False) as writer:
         writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
     return path

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from vlsforest.errors import InputDataError
+from vlsforest.io.atomic import write_bytes
 
 
 @dataclass(eq=False)
@@ -629,7 +630,6 @@ def write_mesh(path, mesh: TriangleMesh) -> None:
     mesh = TriangleMesh(mesh.vertices, mesh.faces)  # validate
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputDataError(f"{path}: cannot write a mesh with NaN or infinite vertex coordinates")
-    path.parent.mkdir(parents=True, exist_ok=True)
     if ext == ".obj":
         from vlsforest.io._text import column_text, join_rows
 
@@ -640,7 +640,7 @@ def write_mesh(path, mesh: TriangleMesh) -> None:
             column_text(mesh.faces[:, n].astype(np.int64) + 1) for n in range(3)
         ]
         body = (join_rows(vcols) if nv else b"") + (join_rows(fcols) if nf else b"")
-        path.write_bytes(head + body)
+        write_bytes(path, head + body)
     else:
         head = (
             "ply\nformat binary_little_endian 1.0\ncomment vlsforest triangle mesh\n"
@@ -650,7 +650,7 @@ def write_mesh(path, mesh: TriangleMesh) -> None:
         frec = np.zeros(mesh.n_faces, dtype=[("n", "u1"), ("idx", "<i4", (3,))])
         frec["n"] = 3
         frec["idx"] = mesh.faces
-        path.write_bytes(head + mesh.vertices.astype("<f8").tobytes() + frec.tobytes())
+        write_bytes(path, head + mesh.vertices.astype("<f8").tobytes() + frec.tobytes())
 
 
 def _float_text(a: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from vlsforest.errors import InputDataError
+from vlsforest.io.atomic import atomic_path
 from vlsforest.io._text import column_text, join_rows, token_counts
 
 #: attribute columns of the AMAPVox 1.4–1.6 layout, in file order (after ``i j k``)
@@ -481,8 +482,7 @@ def write_vox(path, vox: VoxFile) -> None:
         ]
     )
     body = join_rows([column_text(vox.data[c]) for c in vox.columns])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(head.encode("utf-8") + b"\n")
         f.write(body)
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from vlsforest.errors import ConfigError, InputDataError
-from vlsforest.io.npz import save_npz
+from vlsforest.io.npz import ArraySpec, load_npz, save_npz
 
-__all__ = ["VoxelModel", "model_vox"]
+__all__ = ["VoxelModel", "model_vox", "load_crowns", "VOXEL_MODEL_SPEC", "CROWNS_SPEC"]
 
 
 @dataclass
@@ -89,19 +89,43 @@ class VoxelModel:
 
     @classmethod
     def load(cls, path) -> "VoxelModel":
-        """Read a model written by :meth:`save`."""
+        """Read and validate a model written by :meth:`save` (:data:`VOXEL_MODEL_SPEC`).
+
+        Raises
+        ------
+        InputDataError
+            For a file that is not a complete, consistent voxel model; names the file and array.
+        """
         path = Path(path)
-        if not path.is_file():
-            raise InputDataError(f"{path}: no such voxel model file")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                d = {k: z[k] for k in z.files}
-        except Exception as exc:  # corrupt zip / not an npz
-            raise InputDataError(f"{path}: not a voxel model .npz ({exc})") from None
-        missing = {"size", "ijk", "owner"} - set(d)
-        if missing:
-            raise InputDataError(f"{path}: voxel model lacks {sorted(missing)}")
-        return cls(float(d["size"]), d["ijk"], d["owner"], d.get("half"), d.get("centre"), d.get("pad"))
+        d = load_npz(path, VOXEL_MODEL_SPEC, "voxel model")
+        size = float(d["size"])
+        if not size > 0:
+            raise InputDataError(f"{path}: array 'size' must be > 0, got {size!r}")
+        if "half" in d and np.any((d["half"] < 0) | (d["half"] > 0.5 * size * (1 + 1e-9))):
+            raise InputDataError(f"{path}: array 'half' holds cube half sizes outside [0, size/2]")
+        return cls(size, d["ijk"], d["owner"], d.get("half"), d.get("centre"), d.get("pad"))
+
+
+#: the arrays of a voxel model file ("n": one row per cube)
+VOXEL_MODEL_SPEC = {"size": ArraySpec("f", ()), "ijk": ArraySpec("iu", ("n", 3)), "owner": ArraySpec("iu", ("n",)),
+                    "half": ArraySpec("f", ("n",), required=False), "centre": ArraySpec("f", ("n", 3), required=False),
+                    "pad": ArraySpec("f", ("n",), required=False, finite=False)}
+#: the arrays of a crowns file (``vlsforest scene crowns``: points to voxelise and their tree ids)
+CROWNS_SPEC = {"xyz": ArraySpec("f", ("n", 3)), "owner": ArraySpec("iu", ("n",))}
+
+
+def load_crowns(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read and validate a crowns file: ``(xyz (n, 3) float64, owner (n,) int64)``.
+
+    Raises
+    ------
+    InputDataError
+        For a file that is not a complete crowns file, or one without points; names the file.
+    """
+    d = load_npz(path, CROWNS_SPEC, "crowns")
+    if len(d["xyz"]) == 0:
+        raise InputDataError(f"{path}: the crowns file holds no points")
+    return d["xyz"].astype(np.float64), d["owner"].astype(np.int64)
 
 
 def model_vox(model: VoxelModel, pad_max: float | None):

@@ -64,7 +64,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 from numba import njit
 
 from vlsforest.errors import ConfigError, InputDataError
@@ -193,12 +192,9 @@ def _weights(ptr: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 def _shots_from_survey(cloud, yaml_path: Path, row, las_path: Path, ground_classes) -> TlsScan:
-    from vlsforest.sim.survey import survey_from_dict
+    from vlsforest.sim.survey import load_survey
 
-    try:
-        survey = survey_from_dict(yaml.safe_load(yaml_path.read_text()))
-    except (OSError, yaml.YAMLError) as exc:
-        raise InputDataError(f"{yaml_path}: not a readable survey file ({exc})") from None
+    survey = load_survey(yaml_path)  # errors name the file and the key
     if survey.platform_type != "static":
         raise InputDataError(f"{yaml_path}: not a static (TLS) survey")
     if row is None or "gps_time_start" not in row.index or not np.isfinite(float(row["gps_time_start"])):

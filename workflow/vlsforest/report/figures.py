@@ -39,6 +39,7 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from vlsforest.domain.species import species_group  # noqa: E402
 from vlsforest.errors import ConfigError, InputDataError  # noqa: E402
+from vlsforest.io.atomic import save_figure  # noqa: E402
 from vlsforest.stats import (  # noqa: E402
     GROUP_ORDER,
     OTHER_GROUP,
@@ -117,9 +118,7 @@ def _save(fig: Figure, out) -> Path:
     out = Path(out)
     if out.suffix.lower() != ".png":
         raise ConfigError(f"output: a figure path must end in .png, got {out}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, format="png", dpi=DPI, metadata={"Software": None})
-    return out
+    return save_figure(out, fig, format="png", dpi=DPI, metadata={"Software": None})
 
 
 def _no_data(ax, title=None):

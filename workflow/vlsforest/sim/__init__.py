@@ -7,12 +7,14 @@ Public API
 - :func:`simulate` — run a survey over a scene → :class:`SimulationResult`.
 - :func:`redetect` — re-run detection on stored sub-ray hits; :func:`trace_hits` — trace
   and keep only those hits (no detection).
-- :func:`write_points`, :func:`write_pulses`, :func:`save_hits`, :func:`load_hits`.
+- :func:`write_points`, :func:`write_pulses`, :func:`save_hits`, :func:`load_hits`,
+  :func:`load_pulses`, :func:`beam_geometry`; the outputs' documented suffixes.
 - :data:`PRESETS`, :class:`ScannerSettings`.
 """
 
 from vlsforest.sim.engine import DetectorOptions, SimulationResult, redetect, simulate, trace_hits
-from vlsforest.sim.output import load_hits, save_hits, write_points, write_pulses
+from vlsforest.sim.output import (HITS_SUFFIXES, POINTS_SUFFIXES, PULSES_SUFFIXES, beam_geometry, load_hits,
+                                  load_pulses, save_hits, write_points, write_pulses)
 from vlsforest.sim.scanner import PRESETS, ScannerSettings
 from vlsforest.sim.scene import Material, Scene
 from vlsforest.sim.survey import Survey, load_survey, survey_from_dict
@@ -20,5 +22,6 @@ from vlsforest.sim.survey import Survey, load_survey, survey_from_dict
 __all__ = [
     "Scene", "Material", "Survey", "load_survey", "survey_from_dict", "simulate", "redetect", "trace_hits",
     "SimulationResult", "DetectorOptions", "write_points", "write_pulses", "save_hits", "load_hits",
+    "load_pulses", "beam_geometry", "POINTS_SUFFIXES", "PULSES_SUFFIXES", "HITS_SUFFIXES",
     "PRESETS", "ScannerSettings",
 ]

@@ -674,7 +674,7 @@ class _StoredBatch:
 
 
 def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | None = None,
-             block_slots: int = 20000) -> SimulationResult:
+             block_slots: int = 20000, beam: dict | None = None) -> SimulationResult:
     """Re-run detection (energy, waveform, peaks, noise) on stored sub-ray hits — no tracing.
 
     The beam geometry (divergence, sample quality) must be the one the hits were traced
@@ -695,8 +695,19 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
         Noise seed (default: the survey's).
     block_slots : int
         Pulse slots per block of the re-detection (the result does not depend on it).
+    beam : dict, optional
+        The beam geometry the hits were traced with (as :func:`vlsforest.sim.output.load_hits`
+        returns it); any difference from the survey's scanner is a :class:`ConfigError`.
     """
     from types import SimpleNamespace
+
+    if beam is not None:
+        from vlsforest.sim.output import beam_mismatch
+
+        diff = beam_mismatch(beam, survey.scanner)
+        if diff:
+            raise ConfigError(f"the survey's beam geometry differs from the one the hits were traced with "
+                              f"({'; '.join(diff)}); detection needs the traced beam")
 
     t0 = time.perf_counter()
     seed = survey.seed if seed is None else seed

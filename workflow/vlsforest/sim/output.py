@@ -7,8 +7,12 @@
 - Pulses (``.npz`` or ``.csv``): one row per emitted pulse, zero-return pulses included:
   slot, gps_time, origin xyz, direction xyz, scan_dir xyz, scan_angle, source_id, n_returns.
 - Hits (``.npz``): the pulse table, every sub-ray hit (pulse row, sub-ray, range, |cos|
-  incidence, part) and the scene's part table, so :func:`vlsforest.sim.engine.redetect`
-  can re-run detection without tracing.
+  incidence, part), the scene's part table and the beam geometry the hits were traced with
+  (divergence, orientation, sample quality), so :func:`vlsforest.sim.engine.redetect`
+  can re-run detection without tracing, and refuses a survey with another beam.
+
+Every file is written whole or not at all (:mod:`vlsforest.io.atomic`); the loaders validate
+every array (:func:`vlsforest.io.npz.load_npz`).
 """
 
 from __future__ import annotations
@@ -18,10 +22,60 @@ from pathlib import Path
 import numpy as np
 
 from vlsforest.errors import InputDataError
+from vlsforest.io.atomic import atomic_path
 from vlsforest.io.las import PointCloud, write_las
-from vlsforest.io.npz import save_npz
+from vlsforest.io.npz import ArraySpec, load_npz, save_npz
 
 _PULSE_COLS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle", "source_id", "n_returns")
+#: the documented suffixes of the outputs
+POINTS_SUFFIXES = (".las", ".laz")
+PULSES_SUFFIXES = (".npz", ".csv")
+HITS_SUFFIXES = (".npz",)
+#: the arrays of a pulse table ("p": one row per pulse)
+PULSE_SPEC = {"slot": ArraySpec("iu", ("p",)), "gps_time": ArraySpec("f", ("p",)),
+              "origin": ArraySpec("f", ("p", 3)), "direction": ArraySpec("f", ("p", 3)),
+              "scan_dir": ArraySpec("f", ("p", 3)), "scan_angle": ArraySpec("f", ("p",)),
+              "source_id": ArraySpec("iu", ("p",)), "n_returns": ArraySpec("iu", ("p",))}
+#: the beam geometry stored with the hits: detection needs the one the hits were traced with
+BEAM_SPEC = {"beam_divergence_mrad": ArraySpec("f", (2,)), "beam_orientation_deg": ArraySpec("f", ()),
+             "beam_sample_quality": ArraySpec("iu", ())}
+#: the arrays of a hits file ("p": pulses, "h": sub-ray hits, "s": scene parts)
+HITS_SPEC = {**{f"pulse_{k}": v for k, v in PULSE_SPEC.items()},
+             "hit_pulse": ArraySpec("iu", ("h",)), "hit_subray": ArraySpec("iu", ("h",)),
+             "hit_range": ArraySpec("f", ("h",)), "hit_cos_inc": ArraySpec("f", ("h",)),
+             "hit_part": ArraySpec("iu", ("h",)), "hit_label": ArraySpec("iu", ("h",), required=False),
+             "part_object_id": ArraySpec("iu", ("s",)), "part_classification": ArraySpec("iu", ("s",)),
+             "part_reflectance": ArraySpec("f", ("s",)), "part_specularity": ArraySpec("f", ("s",)),
+             "part_shininess": ArraySpec("f", ("s",)), "block_slots": ArraySpec("iu", ()), **BEAM_SPEC}
+
+
+def beam_geometry(scanner) -> dict:
+    """The beam geometry of a scanner that sub-ray hits depend on, as stored in a hits file.
+
+    Parameters
+    ----------
+    scanner : vlsforest.sim.scanner.ScannerSettings
+        The survey's scanner.
+
+    Returns
+    -------
+    dict
+        ``beam_divergence_mrad`` (major, minor), ``beam_orientation_deg``, ``beam_sample_quality``.
+    """
+    return {"beam_divergence_mrad": np.asarray(scanner.beam_divergence_mrad, dtype=np.float64).reshape(2),
+            "beam_orientation_deg": np.float64(scanner.beam_orientation_deg),
+            "beam_sample_quality": np.int64(scanner.beam_sample_quality)}
+
+
+def beam_mismatch(stored: dict, scanner) -> list[str]:
+    """The beam geometry keys on which a scanner differs from the stored geometry (empty: none).
+
+    Each entry reads ``key stored → survey``.
+    """
+    now = beam_geometry(scanner)
+    return [f"{k} {np.asarray(stored[k]).tolist()} → {np.asarray(now[k]).tolist()}"
+            for k in BEAM_SPEC if not np.allclose(np.asarray(stored[k], float), np.asarray(now[k], float),
+                                                  rtol=1e-12, atol=0.0)]
 
 
 def write_points(path, result) -> Path:
@@ -40,7 +94,8 @@ def write_points(path, result) -> Path:
 def write_pulses(path, result) -> Path:
     """Write the per-pulse table (``.npz``, or ``.csv`` by extension)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() not in PULSES_SUFFIXES:
+        raise InputDataError(f"{path}: a pulse table is written as {' or '.join(PULSES_SUFFIXES)}")
     pu = result.pulses
     if path.suffix.lower() == ".csv":
         import pandas as pd
@@ -50,38 +105,99 @@ def write_pulses(path, result) -> Path:
             for i, ax in enumerate("xyz"):
                 cols[f"{name}_{ax}"] = pu[name][:, i]
         cols.update(scan_angle=pu["scan_angle"], source_id=pu["source_id"], n_returns=pu["n_returns"])
-        pd.DataFrame(cols).to_csv(path, index=False, float_format="%.9g")
+        with atomic_path(path) as tmp:
+            pd.DataFrame(cols).to_csv(tmp, index=False, float_format="%.9g")
     else:
         save_npz(path, {k: pu[k] for k in _PULSE_COLS})
     return path
 
 
-def save_hits(path, result, scene, block_slots: int = 20000) -> Path:
-    """Save pulses, sub-ray hits and the scene's part table for later re-detection."""
+def save_hits(path, result, scene, scanner, block_slots: int = 20000) -> Path:
+    """Save pulses, sub-ray hits, the scene's part table and the beam geometry for re-detection.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.npz`` to write.
+    result : SimulationResult
+        A result kept with ``keep_hits=True``.
+    scene : vlsforest.sim.scene.Scene
+        The scene traced (its part table is stored).
+    scanner : vlsforest.sim.scanner.ScannerSettings
+        The scanner traced with (its beam geometry is stored, :func:`beam_geometry`).
+    block_slots : int
+        The tracing block size (noise streams depend on it).
+    """
     if result.hits is None:
         raise InputDataError("the simulation kept no sub-ray hits (run it with keep_hits=True)")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = {f"pulse_{k}": result.pulses[k] for k in _PULSE_COLS}
     data.update({f"hit_{k}": v for k, v in result.hits.items()})
     data.update({f"part_{k}": v for k, v in scene.part_table().items()})
     data["block_slots"] = np.array(block_slots)
+    data.update(beam_geometry(scanner))
     save_npz(path, data)
     return path
 
 
-def load_hits(path) -> tuple[dict, dict, dict, int]:
-    """Load a file written by :func:`save_hits`: (parts, pulses, hits, block_slots)."""
+def load_hits(path) -> tuple[dict, dict, dict, int, dict]:
+    """Load and validate a file written by :func:`save_hits`.
+
+    Returns
+    -------
+    tuple
+        ``(parts, pulses, hits, block_slots, beam)``; ``beam`` as :func:`beam_geometry` gives it.
+
+    Raises
+    ------
+    InputDataError
+        For a file that is not a complete hits file (:func:`vlsforest.io.npz.load_npz`), or
+        whose hits point at pulses, sub-rays or parts it does not hold.
+    """
     path = Path(path)
+    z = load_npz(path, HITS_SPEC, "hits")
+    pulses = {k: z[f"pulse_{k}"] for k in _PULSE_COLS}
+    hits = {k[4:]: v for k, v in z.items() if k.startswith("hit_")}
+    parts = {k[5:]: v for k, v in z.items() if k.startswith("part_")}
+    beam = {k: z[k] for k in BEAM_SPEC}
+    n_pulses, n_parts = len(pulses["slot"]), len(parts["object_id"])
+    for name, n in (("pulse", n_pulses), ("part", n_parts)):
+        h = hits[name]
+        if len(h) and (int(h.min()) < 0 or int(h.max()) >= n):
+            raise InputDataError(f"{path}: array 'hit_{name}' refers to rows outside the {n} stored {name}s")
+    if int(z["block_slots"]) < 1:
+        raise InputDataError(f"{path}: array 'block_slots' must be ≥ 1, got {int(z['block_slots'])}")
+    return parts, pulses, hits, int(z["block_slots"]), beam
+
+
+def load_pulses(path) -> dict:
+    """Load and validate a pulse table written by :func:`write_pulses` (``.npz`` or ``.csv``).
+
+    Raises
+    ------
+    InputDataError
+        For a file that is not a complete pulse table; the message names the file and column.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".csv":
+        z = load_npz(path, PULSE_SPEC, "pulses")
+        return {k: z[k] for k in _PULSE_COLS}
+    import pandas as pd
+
     if not path.is_file():
-        raise InputDataError(f"{path}: no such file")
+        raise InputDataError(f"{path}: no such pulses file")
     try:
-        z = np.load(path)
-        keys = set(z.files)
-        pulses = {k: z[f"pulse_{k}"] for k in _PULSE_COLS}
-        hits = {k[4:]: z[k] for k in keys if k.startswith("hit_")}
-        parts = {k[5:]: z[k] for k in keys if k.startswith("part_")}
-        block = int(z["block_slots"])
-    except (KeyError, ValueError, OSError) as exc:
-        raise InputDataError(f"{path}: not a vlsforest hits file ({exc})") from None
-    return parts, pulses, hits, block
+        df = pd.read_csv(path)
+    except Exception as exc:  # empty, binary or ragged text
+        raise InputDataError(f"{path}: not a pulse table ({' '.join(str(exc).split())})") from None
+    out = {}
+    for k in _PULSE_COLS:
+        cols = [f"{k}_{ax}" for ax in "xyz"] if PULSE_SPEC[k].shape == ("p", 3) else [k]
+        missing = [c for c in cols if c not in df.columns]
+        if missing:
+            raise InputDataError(f"{path}: the pulse table lacks the column(s) {', '.join(missing)}")
+        vals = df[cols].to_numpy()
+        if vals.dtype.kind not in "fiu" or not np.isfinite(vals.astype(float)).all():
+            raise InputDataError(f"{path}: column {cols[0]!r} holds non-numeric, NaN or infinite values")
+        out[k] = vals if len(cols) == 3 else vals[:, 0]
+    return out

@@ -44,7 +44,6 @@ from pathlib import Path
 
 import numba
 import numpy as np
-import yaml
 
 from vlsforest.domain.cubes import CUBE_CORNERS, CUBE_FACES, cube_triangles, scaled_cubes
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
@@ -296,6 +295,26 @@ class Scene:
             return p.extent, p.z
         lo, hi = self.bounds()
         return (lo[0], lo[1], hi[0], hi[1]), lo[2]
+
+    def part_geometries(self) -> list[dict]:
+        """The geometry of every part, in part order (what an exporter needs).
+
+        Returns
+        -------
+        list of dict
+            Each with ``part`` (the :class:`ScenePart`) and ``kind``, and by kind: ``plane``
+            ``z``, ``extent``; ``mesh`` ``vertices``, ``faces``; ``voxels`` ``ijk``,
+            ``origin``, ``size``, ``half`` (None: full cells) and ``centre`` (None: centred in
+            their cells).
+        """
+        out = [None] * len(self.parts)
+        for p in self._planes:
+            out[p.part] = {"z": p.z, "extent": p.extent}
+        for m in self._meshes:
+            out[m.part] = {"vertices": m.vertices, "faces": m.faces}
+        for v in self._voxelsets:
+            out[v.part] = {"ijk": v.ijk, "origin": v.origin, "size": v.size, "half": v.half, "centre": v.centre}
+        return [{"part": part, "kind": part.kind, **geom} for part, geom in zip(self.parts, out)]
 
     def part_table(self) -> dict:
         """Per part: ``object_id``, ``classification``, ``reflectance``, ``specularity``,
@@ -632,14 +651,9 @@ def _embree_hits(tfar, gid, ng, d, parts, t, part, cos_inc):
 
 
 def _load_yaml(path: Path, what: str):
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such {what} file")
-    try:
-        return yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{path}: invalid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    from vlsforest.io.yamlfile import read_yaml
+
+    return read_yaml(path, what, mapping=False)
 
 
 def _num(d: dict, key: str, where: str, default=None, positive=False, integer=False):

@@ -50,6 +50,8 @@ import pandas as pd
 import yaml
 
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.atomic import make_folder, write_csv, write_text
+from vlsforest.io.yamlfile import read_yaml
 from vlsforest.io.las import PointCloud, write_las
 from vlsforest.domain.labels import GROUND_ID
 from vlsforest.io.mesh import TriangleMesh, write_mesh
@@ -185,14 +187,8 @@ def validate_recording_physics(phys, where: str = "recording_physics") -> dict:
 
 def load_recording_physics(path) -> dict:
     """Read and validate a recording-physics YAML file."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such recording-physics file")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
-    return validate_recording_physics(data or {}, where=str(path))
+    data = read_yaml(path, "recording-physics", empty={})
+    return validate_recording_physics(data, where=str(path))
 
 
 def physics_overrides(block: dict, base_divergence) -> tuple[dict, dict | None]:
@@ -480,7 +476,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
             res.points["point_source_id"] = np.full(len(res.points["xyz"]), k, np.uint16)
             _write_cloud(pdir / "tls" / f"scan_{k}.laz", res, gps_offset=gps)
             _truth_labels(tdir / "tls" / f"scan_{k}_labels.npz", res)
-            (pdir / "tls" / f"scan_{k}.survey.yaml").write_text(yaml.safe_dump(sv, sort_keys=False))
+            write_text(pdir / "tls" / f"scan_{k}.survey.yaml", yaml.safe_dump(sv, sort_keys=False))
             s = survey.scanner
             rows.append({"scan_id": k, "x": pos["position"][0], "y": pos["position"][1], "z": pos["position"][2],
                          "heading_deg": pos["heading_deg"], "tilt_deg": pos["tilt_deg"],
@@ -493,7 +489,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
             gps += survey.n_slots / s.prf_hz + 1.0
             _log(f"{plot.name} TLS scan {k}: {survey.n_slots} shots, {len(res.points['xyz'])} points "
                  f"({res.timings['total']:.1f} s)", quiet)
-        pd.DataFrame(rows).to_csv(pdir / "tls" / "scans.csv", index=False, float_format="%.12g")
+        write_csv(pdir / "tls" / "scans.csv", pd.DataFrame(rows), index=False, float_format="%.12g")
         timings["tls_s"] = time.perf_counter() - t0
     for sensor in ("als", "uls"):
         if sensor not in sensors:
@@ -518,7 +514,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         merged = _merge_results(clouds)
         _write_cloud(pdir / f"{sensor}.laz", merged)
         _truth_labels(tdir / f"{sensor}_labels.npz", merged)
-        pd.concat(trajs).to_csv(pdir / f"trajectory_{sensor}.csv", index=False, float_format="%.9g")
+        write_csv(pdir / f"trajectory_{sensor}.csv", pd.concat(trajs), index=False, float_format="%.9g")
         timings[f"{sensor}_s"] = time.perf_counter() - t0
         _log(f"{plot.name} {sensor.upper()}: {len(merged.points['xyz'])} points "
              f"({timings[f'{sensor}_s']:.1f} s)", quiet)
@@ -540,12 +536,12 @@ def _merge_results(results):
 def write_plot_info(plot, out: Path) -> None:
     """``plots/{plot}/plot.json``: what the field campaign knows (extent, ground, target stems)."""
     pdir = out / "plots" / plot.name
-    pdir.mkdir(parents=True, exist_ok=True)
+    make_folder(pdir)
     info = {"plot": plot.name, "extent": [float(v) for v in plot.extent], "ground_z": float(plot.ground_z()),
             "area_ha": float(plot.area_ha()),
             "targets": [{"tree_id": int(t.tree_id), "species": t.species, "x": float(t.x), "y": float(t.y)}
                         for t in plot.trees if t.target]}
-    (pdir / "plot.json").write_text(json.dumps(info, indent=2) + "\n")
+    write_text(pdir / "plot.json", json.dumps(info, indent=2) + "\n")
 
 
 def write_truth_stems(geometries: dict, plot, out: Path) -> None:
@@ -619,10 +615,10 @@ def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign
     write_plot_info(plot, out)
     write_truth_stems(geoms, plot, out)
     tt = truth_table([plot], geoms)
-    (out / "truth" / plot.name).mkdir(parents=True, exist_ok=True)  # also for a plot without targets
-    tt.to_csv(out / "truth" / plot.name / "trees.csv", index=False, float_format="%.6f")
+    make_folder(out / "truth" / plot.name)  # also for a plot without targets
+    write_csv(out / "truth" / plot.name / "trees.csv", tt, index=False, float_format="%.6f")
     for name, text in forest_files.items():  # the plot's truth folder holds what rebuilds it
-        (out / "truth" / plot.name / name).write_text(text)
+        write_text(out / "truth" / plot.name / name, text)
     tm = record_plot(plot, geoms, out, physics, tls_cfg, campaign, seed, workers=workers, quiet=quiet)
     tm["total_s"] = time.perf_counter() - t0
     return tt, tm
@@ -673,12 +669,12 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     if part and not plots:
         raise ConfigError("part: name the plots to record (--plots)")
     out = Path(out_dir)
-    (out / "truth").mkdir(parents=True, exist_ok=True)
+    make_folder(out / "truth")
     files = {"recording_physics.yaml": yaml.safe_dump(physics, sort_keys=True),
              "synth_settings.yaml": yaml.safe_dump({"seed": int(seed), **st}, sort_keys=True)}
     if not part:
         for name, text in files.items():
-            (out / "truth" / name).write_text(text)
+            write_text(out / "truth" / name, text)
     args = (out, physics, st["tls"], st["recordings"], seed, quiet, files)
     n_proc = _plot_processes(workers, len(layouts))
     if n_proc > 1:
@@ -699,7 +695,7 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     timings = {plot.name: tm for plot, (_, tm) in zip(layouts, done)}
     if not part:
         table = pd.concat(truth, ignore_index=True)
-        table.to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
+        write_csv(out / "truth" / "trees.csv", table, index=False, float_format="%.6f")
     return timings
 
 
@@ -747,7 +743,6 @@ def gather_truth(plot_truth_dirs, out_csv) -> list[str]:
                              f"forest (its plots: {order})")
     names = [n for n in order if n in by_name]
     out_csv = Path(out_csv)
-    out_csv.parent.mkdir(parents=True, exist_ok=True)
     # the plots' tables one after the other, header once: the bytes of one call for all plots
     lines = []
     for i, n in enumerate(names):
@@ -755,7 +750,7 @@ def gather_truth(plot_truth_dirs, out_csv) -> list[str]:
         if i and rows[:1] != lines[:1]:
             raise InputDataError(f"{by_name[n] / 'trees.csv'}: columns differ from {by_name[names[0]] / 'trees.csv'}")
         lines += rows if i == 0 else rows[1:]
-    out_csv.write_text("".join(lines))
+    write_text(out_csv, "".join(lines))
     for name in FOREST_TRUTH_FILES[1:]:
-        (out_csv.parent / name).write_text(texts[name][1])
+        write_text(out_csv.parent / name, texts[name][1])
     return names
