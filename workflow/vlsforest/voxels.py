@@ -37,7 +37,6 @@ file and one config entry — see docs/tutorials/adding-a-method.md.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np

@@ -45,7 +45,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from vlsforest.domain.cubes import CUBE_CORNERS, CUBE_FACES, cube_triangles, scaled_cubes
+from vlsforest.domain.cubes import cube_triangles, scaled_cubes
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.io.voxel_model import VoxelModel
 from vlsforest.sim import _embree
