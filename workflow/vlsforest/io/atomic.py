@@ -163,17 +163,25 @@ def atomic_path(path):
     path = Path(path)
     made = _make_parent(path)
     tmp = _temporary_name(path)
-    try:
+    with _discarded_on_error(tmp, made):
         yield tmp
+    if not tmp.exists():
+        raise OutputPathError(f"{path}: the writer produced no file")
+    os.chmod(tmp, 0o666 & ~_umask())
+    _commit_or_defer(tmp, path)
+
+
+@contextlib.contextmanager
+def _discarded_on_error(tmp: Path, made):
+    """Remove ``tmp`` (and, outside a transaction, the folders ``made`` for it when left empty)
+    if the block raises anything, :class:`KeyboardInterrupt` included; re-raise."""
+    try:
+        yield
     except BaseException:
         _remove(tmp)
         if _PENDING.get() is None:
             _remove_empty(made)
         raise
-    if not tmp.exists():
-        raise OutputPathError(f"{path}: the writer produced no file")
-    os.chmod(tmp, 0o666 & ~_umask())
-    _commit_or_defer(tmp, path)
 
 
 @contextlib.contextmanager
@@ -194,13 +202,8 @@ def atomic_dir(path):
     made = _make_parent(path)
     _remove_stale(path)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{os.getpid()}-", suffix=f"-{path.name}", dir=path.parent))
-    try:
+    with _discarded_on_error(tmp, made):
         yield tmp
-    except BaseException:
-        _remove(tmp)
-        if _PENDING.get() is None:
-            _remove_empty(made)
-        raise
     os.chmod(tmp, 0o755 & ~_umask())
     _commit_or_defer(tmp, path)
 
