@@ -45,6 +45,7 @@ include: "workflow/rules/sim.smk"
 include: "workflow/rules/metrics.smk"
 include: "workflow/rules/stats.smk"
 include: "workflow/rules/diagnose.smk"
+include: "workflow/rules/experiments.smk"
 
 
 # Voxel methods added as rule files (docs/tutorials/adding-a-method.md): every rules/methods/*.smk

@@ -144,8 +144,10 @@ def test_findings_table_is_generated_from_a_findings_file(tmp_path):
 
     ft = _load("findings_table", ROOT / "scripts" / "findings-table.py")
     findings = [
-        dict(id="F1", claim="Large voxels | overestimate CBH.", verdict="agrees", evidence=["x"]),
-        dict(id="T5:fixed_0.25", claim="Few voxels.", verdict="disagrees", evidence=[]),
+        dict(id="F1", claim="Large voxels | overestimate CBH.", verdict="agrees", evidence=["x"],
+             tolerance="±0.1 m (the slices)"),
+        dict(id="T5:fixed_0.25", claim="Few voxels.", verdict="disagrees", evidence=[], tolerance="",
+             cause="the step", experiment="scan finer"),
     ]
     src = tmp_path / "findings.md"
     src.write_text(findings_markdown(findings), encoding="utf-8")
@@ -153,8 +155,8 @@ def test_findings_table_is_generated_from_a_findings_file(tmp_path):
     readme.write_text((ROOT / "README.md").read_text(encoding="utf-8"), encoding="utf-8")
     assert ft.main(["--findings", str(src), "--readme", str(readme)]) == 0
     text = readme.read_text(encoding="utf-8")
-    assert "| F1 | Large voxels \\| overestimate CBH. | agrees |" in text
-    assert "| T5:fixed_0.25 | Few voxels. | disagrees |" in text
+    assert "| F1 | Large voxels \\| overestimate CBH. | agrees | ±0.1 m |  |" in text
+    assert "| T5:fixed_0.25 | Few voxels. | disagrees |  | the step; scan finer |" in text
     assert "1 agree, 1 disagree, 0 not testable." in text
     assert ft.main(["--findings", str(src), "--readme", str(readme), "--check"]) == 0
     assert ft.main(["--findings", str(tmp_path / "missing.md"), "--readme", str(readme)]) == 2

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -70,8 +71,11 @@ def test_errors_constant_offset_and_rel_error():
     np.testing.assert_allclose(p["rel_error"].to_numpy(), 100.0 / p["ref"].to_numpy())
     assert set(e.loc[e["species"] == "picea_abies", "group"]) == {"conifer"}
     assert set(e.loc[e["species"] == "carpinus_betulus", "group"]) == {"broadleaf"}
-    # method order: known methods first, then the others alphabetically
-    assert list(dict.fromkeys(e["method"])) == ["fixed_0.25", "scaled", "plus1"]
+    # method order: alphabetical, or the given order first
+    assert list(dict.fromkeys(e["method"])) == ["fixed_0.25", "plus1", "scaled"]
+    e = stats.compute_errors(m, methods=["scaled", "fixed_0.25"], scenarios=["uls"])
+    assert list(dict.fromkeys(e["method"])) == ["scaled", "fixed_0.25", "plus1"]
+    assert list(dict.fromkeys(e["scenario"])) == ["uls", "als"]
 
 
 def test_summary_constant_error_and_bootstrap_ci():
@@ -221,10 +225,32 @@ def test_multireturn_ttest_hand_computed():
 
 STUDY_METHODS = ("fixed_0.25", "fixed_0.10", "fixed_0.05", "fixed_0.02", "scaled", "scaled_random_shift",
                  "scaled_cog_shift")
+#: the study's methods and scenarios as a configuration gives them (config/config.yaml)
+STUDY_CONFIG = {
+    "methods": {
+        "fixed_0.25": {"kind": "fixed", "voxel_size": 0.25},
+        "fixed_0.10": {"kind": "fixed", "voxel_size": 0.10},
+        "fixed_0.05": {"kind": "fixed", "voxel_size": 0.05},
+        "fixed_0.02": {"kind": "fixed", "voxel_size": 0.02},
+        "scaled": {"kind": "scaled", "a0": 0.25, "alpha": 0.5, "shift": "none"},
+        "scaled_random_shift": {"kind": "scaled", "a0": 0.25, "alpha": 0.5, "shift": "random"},
+        "scaled_cog_shift": {"kind": "scaled", "a0": 0.25, "alpha": 0.5, "shift": "cog"},
+    },
+    "scenarios": {"als": {"scanner": "riegl_vq780i"}, "uls": {"scanner": "riegl_minivux1uav"}},
+}
+
+
+def study_roles(config=STUDY_CONFIG):
+    return stats.StudyRoles.from_config(config["methods"], config["scenarios"])
 
 
 def study_like(flip=False):
-    """Data that follow the study (``flip=False``) or contradict it (``flip=True``)."""
+    """Data that follow the study (``flip=False``) or contradict it (``flip=True``).
+
+    Offsets are set far from each tolerance of :mod:`vlsforest.stats.claims` (0.1 m for heights,
+    5 pp for multiple returns, 10 % of the mean reference CPA ≈ 6 m² here), with a noise of
+    0.05 on 12 trees, so each verdict follows from the construction.
+    """
     s = -1.0 if flip else 1.0
     off = {
         "fixed_0.25": {"cbh": 3.0 * s, "cpa": -20.0 * s, "multi_return_pct": -30.0 * s, "hmean": 2.0 * s,
@@ -235,22 +261,31 @@ def study_like(flip=False):
         "fixed_0.02": {"cbh": 0.3, "cpa": -2.0, "multi_return_pct": 12.0},
         "scaled": {"cbh": 0.2, "cpa": -1.0},
         "scaled_random_shift": {"cbh": 0.2, "cpa": -1.0},
-        "scaled_cog_shift": {"cbh": 0.2, "cpa": -3.0 * s, "multi_return_pct": -3.0 * s},
+        "scaled_cog_shift": {"cbh": 0.2, "cpa": -3.0 * s, "multi_return_pct": -3.0 * s, "hmean": -0.3 * s,
+                             "height": -0.3 * s},
     }
     m = make_metrics(n_trees=12, methods=STUDY_METHODS, offsets=off, noise=0.05, seed=11)
     m.loc[m["method"] == "reference", "cpa"] += 40.0  # keep CPAs positive and large
     m.loc[m["method"] != "reference", "cpa"] += 40.0
-    counts = {"fixed_0.25": 1000, "fixed_0.10": 5000, "fixed_0.05": 20000, "fixed_0.02": 120000 if not flip else 20000,
+    # 0.02 m voxels overestimate the ULS share by the study's ≈ 8 (conifer) and ≈ 20 pp (broadleaf)
+    conifer = m["species"] == "picea_abies"
+    fine_uls = (m["method"] == "fixed_0.02") & (m["scenario"] == "uls")
+    ref = m[m["method"] == "reference"].set_index(["plot", "tree_id", "scenario"])["multi_return_pct"]
+    keys = pd.MultiIndex.from_frame(m.loc[fine_uls, ["plot", "tree_id", "scenario"]])
+    m.loc[fine_uls, "multi_return_pct"] = ref.reindex(keys).to_numpy() + np.where(conifer[fine_uls], 8.0, 20.0)
+    counts = {"fixed_0.25": 1000, "fixed_0.10": 5000, "fixed_0.05": 20000, "fixed_0.02": 50000 if not flip else 20000,
               "scaled": 1000, "scaled_random_shift": 1000, "scaled_cog_shift": 1000}
     return m, voxel_table(STUDY_METHODS, counts), time_table(STUDY_METHODS)
 
 
-def _findings(m, vc, tt):
-    e = stats.compute_errors(m)
+def _findings(m, vc, tt, roles=None, experiments=None):
+    roles = study_roles() if roles is None else roles
+    e = stats.compute_errors(m, methods=roles.method_names, scenarios=roles.scenario_names)
     t = stats.paired_tests(e)
     mr = stats.multireturn_ttest(m)
     t5 = stats.table5(e, vc, tt)
-    return {f["id"]: f for f in stats.evaluate_findings(e, t, mr, t5, vc)}, t5
+    found = stats.evaluate_findings(e, t, mr, t5, vc, roles, seed=3, experiments=experiments)
+    return {f["id"]: f for f in found}, t5
 
 
 def test_table5_numbers():
@@ -258,8 +293,8 @@ def test_table5_numbers():
     _, t5 = _findings(m, vc, tt)
     assert list(t5["method"]) == list(STUDY_METHODS)
     r = t5.set_index("method")
-    assert r.loc["fixed_0.02", "n_voxels"] == 120000 * 3
-    assert r.loc["fixed_0.02", "voxel_ratio"] == pytest.approx(120.0)
+    assert r.loc["fixed_0.02", "n_voxels"] == 50000 * 3
+    assert r.loc["fixed_0.02", "voxel_ratio"] == pytest.approx(50.0)
     assert r.loc["scaled", "voxel_ratio"] == pytest.approx(1.0)
     assert r.loc["fixed_0.25", "seconds_als"] == pytest.approx(10.0 + 20.0)
     assert r.loc["fixed_0.10", "seconds_total"] == pytest.approx(2 * (11.0 + 21.0))
@@ -270,28 +305,66 @@ def test_table5_numbers():
     assert r.loc["fixed_0.25", "cbh_mae_m"] == pytest.approx(3.0, abs=0.1)
 
 
+def test_penetration_class_uses_the_papers_eight_points():
+    # the paper calls +8 pp (0.02 m, ULS conifers) an overestimation: the realistic band is ±8 pp
+    assert stats.penetration_class(7.9) == "realistic"
+    assert stats.penetration_class(8.1) == "overestimated"
+    assert stats.penetration_class(-8.1) == "underestimated"
+    assert stats.penetration_class(float("nan")) == "unknown"
+
+
+STUDY_AGREES = ("F1", "F2", "F3", "F4", "F5", "F6", "F7", "T5:0.25 m fixed", "T5:0.02 m fixed", "T5:scaled")
+
+
 def test_findings_agree_then_flip_to_disagree():
     m, vc, tt = study_like(flip=False)
     f, _ = _findings(m, vc, tt)
-    for k in ("F1", "F2", "F3", "F4", "F5", "F7", "T5:fixed_0.25", "T5:fixed_0.02", "T5:scaled"):
+    for k in STUDY_AGREES:
         assert f[k]["verdict"] == "agrees", (k, f[k])
+        assert f[k]["tolerance"], k
     # F3b: fixed voxels keep the conifer/broadleaf difference here (offsets are group-blind)
     assert f["F3b"]["verdict"] == "disagrees"
     m, vc, tt = study_like(flip=True)
     f, _ = _findings(m, vc, tt)
-    for k in ("F1", "F2", "F4", "F5", "T5:fixed_0.25"):
+    for k in ("F1", "F2", "F4", "F5", "T5:0.25 m fixed"):
         assert f[k]["verdict"] == "disagrees", (k, f[k])
+        assert f[k]["cause"], k
     text = stats.findings_markdown(list(f.values()))
     assert "**F1** 0.25 m fixed voxels overestimate CBH and underestimate CPA. — **disagrees**" in text
+    assert "tolerance: ±0.1 m" in text
 
 
-def test_findings_not_testable_without_methods():
+def test_roles_come_from_the_configuration_not_the_names():
+    """Renamed methods and scenarios play the same parts: every verdict is unchanged."""
+    m, vc, tt = study_like()
+    f_std, _ = _findings(m, vc, tt)
+    names = {"fixed_0.25": "coarse", "fixed_0.10": "medium", "fixed_0.05": "small", "fixed_0.02": "tiny",
+             "scaled": "pad", "scaled_random_shift": "pad_r", "scaled_cog_shift": "pad_c"}
+    scen = {"als": "plane", "uls": "drone"}
+    m2 = m.assign(method=m["method"].map(lambda x: names.get(x, x)), scenario=m["scenario"].map(scen))
+    vc2 = vc.assign(method=vc["method"].map(names))
+    tt2 = tt.assign(method=tt["method"].map(names), scenario=tt["scenario"].map(scen))
+    cfg = {"methods": {names[k]: v for k, v in STUDY_CONFIG["methods"].items()},
+           "scenarios": {"plane": {"scanner": "riegl_vq780i"}, "drone": {"scanner": "other", "platform": "uls"}}}
+    f_new, _ = _findings(m2, vc2, tt2, roles=study_roles(cfg))
+    assert {k: v["verdict"] for k, v in f_new.items()} == {k: v["verdict"] for k, v in f_std.items()}
+    # a scaled method with another exponent is not the study's: its findings are not testable
+    cfg["methods"]["pad"] = {"kind": "scaled", "a0": 0.25, "alpha": 1.0, "shift": "none"}
+    f_other, _ = _findings(m2, vc2, tt2, roles=study_roles(cfg))
+    assert f_other["F2"]["verdict"] == "not testable"
+    assert f_other["T5:scaled"]["verdict"] == "not testable"
+
+
+def test_findings_not_testable_without_methods_or_roles():
     m = make_metrics(methods=("plus1",))
     vc = voxel_table(("plus1",), {"plus1": 10})
     f, _ = _findings(m, vc, time_table(("plus1",)))
     assert f["F1"]["verdict"] == "not testable"
     assert f["T5:scaled"]["verdict"] == "not testable"
     assert f["F3"]["verdict"] == "not testable"
+    m, vc, tt = study_like()
+    f, _ = _findings(m, vc, tt, roles=stats.StudyRoles())
+    assert {v["verdict"] for v in f.values()} == {"not testable"}
 
 
 def test_f3_conifer_difference_flips():
@@ -303,6 +376,48 @@ def test_f3_conifer_difference_flips():
     m["multi_return_pct"] = 60.0 + np.random.default_rng(0).normal(0, 3, len(m))
     f, _ = _findings(m, vc, tt)
     assert f["F3"]["verdict"] == "disagrees"
+
+
+def test_f6_small_but_significant_shift_is_nothing():
+    """A −1.3 pp shift of every tree is significant (paired t p ≪ 0.05) yet within the paper's
+    5 pp: 'changes nothing' agrees; a 7 pp shift does not."""
+    for shift, verdict in ((-1.3, "agrees"), (-7.0, "disagrees")):
+        m, vc, tt = study_like()
+        sel = m["method"] == "scaled_random_shift"
+        m.loc[sel, "multi_return_pct"] = m.loc[sel, "multi_return_pct"] + shift
+        f, _ = _findings(m, vc, tt)
+        assert f["F6"]["verdict"] == verdict, (shift, f["F6"])
+
+
+def test_d1_compares_the_references_with_the_studys_real_shares():
+    m, vc, tt = study_like()
+    ref = m["method"] == "reference"
+    conifer = m["species"] == "picea_abies"
+    study = {("als", True): 73.4, ("als", False): 55.9, ("uls", True): 33.1, ("uls", False): 28.1}
+    for (sc, con), v in study.items():
+        m.loc[ref & (m["scenario"] == sc) & (conifer == con), "multi_return_pct"] = v + 1.0
+    f, _ = _findings(m, vc, tt)
+    assert f["D1"]["verdict"] == "agrees", f["D1"]
+    m.loc[ref & (m["scenario"] == "uls"), "multi_return_pct"] += 10.0
+    f, _ = _findings(m, vc, tt)
+    assert f["D1"]["verdict"] == "disagrees"
+
+
+def test_f2_quotes_the_tls_step_experiment():
+    m, vc, tt = study_like(flip=True)  # ratio 20x: outside 25-100x
+    f, _ = _findings(m, vc, tt)
+    assert "TLS angular step" in f["F2"]["cause"] and "not run" in f["F2"]["experiment"]
+    exp = {"tls_step": {"plot": "P3", "n_trees": 2, "steps": [
+        {"step_deg": 0.1, "ratio": 9.0}, {"step_deg": 0.017, "ratio": 41.5}]}}
+    f, _ = _findings(m, vc, tt, experiments=exp)
+    assert "0.1°: 9.0×" in f["F2"]["experiment"] and "0.017°: 41.5×" in f["F2"]["experiment"]
+
+
+def test_roles_reject_bad_blocks():
+    with pytest.raises(ConfigError, match="methods.x"):
+        stats.StudyRoles.from_config({"x": {"voxel_size": 0.1}}, {})
+    with pytest.raises(ConfigError, match="scenarios.s.platform"):
+        stats.StudyRoles.from_config({}, {"s": {"scanner": "riegl_vq780i", "platform": "tls"}})
 
 
 # --------------------------------------------------------------------------- files and CLI
@@ -324,15 +439,19 @@ def test_cli_writes_files_byte_identical(tmp_path):
     mp, vp, sp = _write_inputs(tmp_path)
     for out in ("a", "b"):
         rc = main(["stats", "--metrics", str(mp), "--voxel-counts", str(vp), "--sim-times", str(sp),
-                   "-o", str(tmp_path / out), "--n-boot", "300", "--seed", "4"])
+                   "-o", str(tmp_path / out), "--n-boot", "300", "--seed", "4", "--study-json", json.dumps(STUDY_CONFIG)])
         assert rc == 0
-    names = ["errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md"]
+    names = ["errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md",
+             "findings.csv"]
     for n in names:
         a, b = (tmp_path / "a" / n).read_bytes(), (tmp_path / "b" / n).read_bytes()
         assert a and a == b, n
     t5 = pd.read_csv(tmp_path / "a" / "table5.csv")
-    assert t5.loc[t5["method"] == "fixed_0.02", "voxel_ratio"].iloc[0] == pytest.approx(120.0)
+    assert t5.loc[t5["method"] == "fixed_0.02", "voxel_ratio"].iloc[0] == pytest.approx(50.0)
     assert "agree" in (tmp_path / "a" / "findings.md").read_text()
+    table = pd.read_csv(tmp_path / "a" / "findings.csv")
+    assert list(table.columns) == ["id", "claim", "verdict", "tolerance", "cause", "experiment", "evidence"]
+    assert table.set_index("id").loc["F1", "verdict"] == "agrees"
 
 
 def test_cli_writes_each_file_where_its_option_names_it(tmp_path, capsys):
@@ -344,16 +463,18 @@ def test_cli_writes_each_file_where_its_option_names_it(tmp_path, capsys):
     common = ["stats", "--metrics", str(mp), "--voxel-counts", str(vp), "--sim-times", str(sp), "--n-boot", "300"]
     assert main([*common, "-o", str(tmp_path / "std")]) == 0
     named = {"--out-errors": "e.csv", "--out-summary": "s.csv", "--out-tests": "t.csv",
-             "--out-multireturn": "m.csv", "--out-table5": "t5.csv", "--out-findings": "f.md"}
+             "--out-multireturn": "m.csv", "--out-table5": "t5.csv", "--out-findings": "f.md",
+             "--out-findings-table": "f.csv"}
     args = [x for opt, name in named.items() for x in (opt, str(tmp_path / "own" / name))]
     assert main([*common, *args]) == 0
     assert sorted(p.name for p in (tmp_path / "own").iterdir()) == sorted(named.values())
-    std = ("errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md")
+    std = ("errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv", "table5.csv", "findings.md",
+           "findings.csv")
     for name, own in zip(std, named.values()):
         assert (tmp_path / "own" / own).read_bytes() == (tmp_path / "std" / name).read_bytes(), name
     capsys.readouterr()
     assert main([*common, *args[:-2]]) == 2
-    assert capsys.readouterr().err.strip() == "vlsforest stats: error: --out-findings: missing (or give -o OUTDIR)"
+    assert capsys.readouterr().err.strip() == "vlsforest stats: error: --out-findings-table: missing (or give -o OUTDIR)"
 
 
 def test_missing_column_names_the_file(tmp_path, capsys):
@@ -398,8 +519,25 @@ def test_bad_tables(tmp_path):
 
 
 def test_method_order_never_hard_codes():
-    assert stats.method_order(["zzz", "scaled", "reference", "aaa", "fixed_0.02", "fixed_0.25"]) == [
-        "fixed_0.25", "fixed_0.02", "scaled", "aaa", "zzz"]
+    # the given order first (names it lacks are skipped), then the others alphabetically
+    assert stats.method_order(["zzz", "scaled", "reference", "aaa", "fixed_0.02", "fixed_0.25"],
+                              ["fixed_0.25", "nope", "scaled"]) == ["fixed_0.25", "scaled", "aaa", "fixed_0.02", "zzz"]
+    assert stats.method_order(["b", "reference", "a"]) == ["a", "b"]
+    assert stats.scenario_order(["uls", "x", "als"], ["uls"]) == ["uls", "als", "x"]
     # by group (broadleaf, conifer, then species of no known group), then by name
     assert stats.species_order(["quercus_robur", "picea_abies", "abies_alba", "fagus_sylvatica", "picea_abies"]) == [
         "fagus_sylvatica", "abies_alba", "picea_abies", "quercus_robur"]
+
+
+def test_docs_state_every_tolerance_and_its_source():
+    """docs/findings.md lists each tolerance of vlsforest.stats.claims with its source."""
+    from pathlib import Path
+
+    from vlsforest.stats import claims
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "findings.md").read_text(encoding="utf-8")
+    tols = [v for v in vars(claims).values() if isinstance(v, claims.Tolerance)]
+    assert len(tols) == 5
+    for t in tols:
+        assert t.source in text, t
+        assert f"{t.value:g}" in text, t

@@ -271,6 +271,7 @@ def final_outputs():
     if virtual_plots():
         out += ["results/summary/pad_validation.csv", "results/forest/truth/trees.csv"]
     out += expand("results/diagnosis/{scenario}.json", scenario=diagnosis_scenarios())
+    out += list(enabled_experiments().values())
     return out
 
 
@@ -286,6 +287,22 @@ def synth_threads(wildcards=None):
     if cores is None or cores >= 1 << 30:
         return 16
     return max(1, min(16, int(cores) // n))
+
+
+def experiment_setting(name, key, default=None):
+    """A setting of experiment ``name`` (config ``experiments.<name>.<key>``), or ``default``."""
+    return (config.get("experiments") or {}).get(name, {}).get(key, default)
+
+
+def enabled_experiments():
+    """The experiments the config enables, by name → their result file."""
+    return {name: f"results/experiments/{name}.json"
+            for name, block in (config.get("experiments") or {}).items() if block.get("enabled")}
+
+
+def study_param(wildcards=None):
+    """The methods and scenarios blocks: the display order and the part each plays in the findings."""
+    return json.dumps({"methods": config["methods"], "scenarios": config["scenarios"]})
 
 
 def synth_param(wildcards=None):

@@ -4,11 +4,13 @@
 
 rule stats:
     input:
+        unpack(lambda wildcards: enabled_experiments()),
         metrics="results/summary/tree_metrics.csv",
         voxels="results/summary/voxel_counts.csv",
         times="results/summary/sim_times.csv",
     output:
         findings=report("results/summary/stats/findings.md", caption="../report/findings.rst", category="Findings"),
+        findings_table="results/summary/stats/findings.csv",
         errors=report("results/summary/stats/errors.csv", caption="../report/errors.rst", category="Tables"),
         summary=report(
             "results/summary/stats/summary_by_species.csv", caption="../report/summary_by_species.rst", category="Tables"
@@ -25,12 +27,17 @@ rule stats:
         runtime=10,
     params:
         seed=config["seed"],
+        study=study_param,
+        experiments=lambda wildcards, input: " ".join(
+            f"--experiment {name}={getattr(input, name)}" for name in enabled_experiments()
+        ),
         library=command_hash("stats"),
     shell:
         "vlsforest stats --metrics {input.metrics} --voxel-counts {input.voxels} "
-        "--sim-times {input.times} --seed {params.seed} --out-errors {output.errors} "
-        "--out-summary {output.summary} --out-tests {output.tests} --out-multireturn {output.mr} "
-        "--out-table5 {output.table5} --out-findings {output.findings} > {log} 2>&1"
+        "--sim-times {input.times} --study-json {params.study:q} {params.experiments} --seed {params.seed} "
+        "--out-errors {output.errors} --out-summary {output.summary} --out-tests {output.tests} "
+        "--out-multireturn {output.mr} --out-table5 {output.table5} --out-findings {output.findings} "
+        "--out-findings-table {output.findings_table} > {log} 2>&1"
 
 
 rule figures:

@@ -24,7 +24,7 @@ from vlsforest.io.atomic import output_transaction
 #: sub-command modules under vlsforest.commands, in the order ``--help`` lists them
 COMMANDS = (
     "synth", "segment", "extract", "stems", "voxels", "pad", "scene", "demo", "plan", "simulate",
-    "detect", "metrics", "collect", "stats", "report", "diagnose",
+    "detect", "metrics", "collect", "stats", "report", "diagnose", "experiment",
 )
 
 

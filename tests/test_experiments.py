@@ -1,0 +1,75 @@
+"""Tests of the experiments (vlsforest.experiments) and ``vlsforest experiment``."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vlsforest.errors import ConfigError
+from vlsforest.experiments import tls_step
+
+
+def test_filled_cells_counts_distinct_cells():
+    xyz = np.array([[0.001, 0.001, 0.001], [0.019, 0.019, 0.019], [0.021, 0.0, 0.0], [-0.001, 0.0, 0.0]])
+    # 0.02 m: (0,0,0) twice, (1,0,0), (-1,0,0); 0.25 m: (0,0,0) and (-1,0,0)
+    assert len(tls_step.filled_cells(xyz, 0.02)) == 3
+    assert len(tls_step.filled_cells(xyz, 0.25)) == 2
+    assert tls_step.filled_cells(np.zeros((0, 3)), 0.02).shape == (0, 3)
+
+
+def test_tree_fov_points_at_the_box():
+    # a 2 m wide, 10 m tall box 20 m north of a scanner at 1.5 m height
+    lo, hi = np.array([-1.0, 19.0, 0.0]), np.array([1.0, 21.0, 10.0])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    fov = tls_step.tree_fov([0.0, 0.0, 1.5], corners, (-40.0, 60.0))
+    assert fov["heading_deg"] == pytest.approx(0.0, abs=1e-9)
+    # widest corner: atan(1/19)
+    assert fov["h_half_deg"] == pytest.approx(math.degrees(math.atan2(1.0, 19.0)) + tls_step.FOV_MARGIN_DEG)
+    # from the box's lowest corner seen at the nearest distance 19 m to its top seen at 19 m
+    assert fov["v_fov_deg"][0] == pytest.approx(math.degrees(math.atan2(-1.5, 19.0)) - tls_step.FOV_MARGIN_DEG)
+    assert fov["v_fov_deg"][1] == pytest.approx(math.degrees(math.atan2(8.5, 19.0)) + tls_step.FOV_MARGIN_DEG)
+    # a box entirely above the vertical limits is not scanned
+    assert tls_step.tree_fov([0.0, 0.0, 1.5], corners + [0, 0, 100.0], (-40.0, 5.0)) is None
+
+
+def test_run_rejects_bad_arguments():
+    with pytest.raises(ConfigError, match="steps"):
+        tls_step.run_tls_step({"forest": {"preset": "quick"}}, "Q1", [0.0])
+    with pytest.raises(ConfigError, match="band_m"):
+        tls_step.run_tls_step({"forest": {"preset": "quick"}}, "Q1", [0.5], band_m=0.0)
+    with pytest.raises(ConfigError, match="unknown plot"):
+        tls_step.run_tls_step({"forest": {"preset": "quick"}}, "nope", [0.5])
+
+
+def test_finer_step_fills_more_fine_cells(tmp_path):
+    """On the quick forest: a finer step fills more 0.02 m cells per filled 0.25 m cell; the CLI
+    writes the same bytes twice."""
+    from vlsforest.cli import main
+
+    cfg = json.dumps({"forest": {"preset": "quick"}, "seed": 0})
+    outs = []
+    for name in ("a.json", "b.json"):
+        rc = main(["experiment", "tls-step", "--config-json", cfg, "--plot", "Q1", "--steps", "0.4", "0.2",
+                   "--trees", "1", "--band", "1.5", "-o", str(tmp_path / name)])
+        assert rc == 0
+        outs.append((tmp_path / name).read_bytes())
+    assert outs[0] == outs[1]
+    res = json.loads(outs[0])
+    coarse, fine = res["steps"]
+    assert coarse["step_deg"] == 0.4 and fine["step_deg"] == 0.2
+    assert fine["n_returns"] > 2 * coarse["n_returns"]
+    assert fine["cells_fine"] > coarse["cells_fine"]
+    assert fine["ratio"] > coarse["ratio"]
+    assert res["n_trees"] == 1 and res["band_m"] == 1.5
+
+
+def test_cli_bad_config_is_one_line(tmp_path, capsys):
+    from vlsforest.cli import main
+
+    assert main(["experiment", "tls-step", "--config-json", "{", "--plot", "Q1", "-o", str(tmp_path / "x.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vlsforest experiment: error: --config-json") and "\n" not in err
+    assert not (tmp_path / "x.json").exists()

@@ -1,0 +1,30 @@
+# Experiments that test the cause of a finding that disagrees with the study
+# (vlsforest.experiments; docs/findings.md). Each writes one JSON result under
+# results/experiments/; an enabled experiment is part of the default target and its result goes
+# into the findings (rule stats).
+
+
+rule experiment_tls_step:
+    output:
+        "results/experiments/tls_step.json",
+    log:
+        "logs/experiments/tls_step.log",
+    benchmark:
+        "logs/benchmarks/experiments/tls_step.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    params:
+        settings=synth_param,
+        plot=lambda wildcards: experiment_setting("tls_step", "plot", (virtual_plots() or [""])[0]),
+        steps=lambda wildcards: " ".join(str(s) for s in experiment_setting("tls_step", "steps", [0.1, 0.017])),
+        trees=lambda wildcards: (f"--trees {experiment_setting('tls_step', 'trees')}"
+                                 if experiment_setting("tls_step", "trees") else ""),
+        band=lambda wildcards: (f"--band {experiment_setting('tls_step', 'band_m')}"
+                                if experiment_setting("tls_step", "band_m") else ""),
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment tls-step --config-json {params.settings:q} --plot {params.plot} "
+        "--steps {params.steps} {params.trees} {params.band} -o {output} > {log} 2>&1"
