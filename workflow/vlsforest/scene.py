@@ -12,23 +12,19 @@ with object ids (:func:`vlsforest.domain.labels.object_ids`) that separate each 
 (``10·t + 2``, t = segmented tree id) from the surrounding trees (``2``) and the ground (``1``),
 and materials (reflectance of foliage for voxels, wood for stems, ground for the plane).
 
-:func:`export_helios` writes the same scene as HELIOS++ scene XML with its parts: OBJ for meshes
-and the plane, AMAPVox ``.vox`` (``fixed`` mode) for fixed-size voxel sets, ``.vox`` in
-``scaled`` mode for unshifted PAD-scaled cubes (PAD rescaled to one ``#max_pad`` per file so the
-cube sides are exactly ours) and OBJ cubes for shifted cubes (HELIOS++ cannot read per-cube
-offsets; its own ``randomShift`` draws other numbers).
+:func:`export_helios` writes the same scene as HELIOS++ scene XML with its parts (OBJ, AMAPVox
+``.vox``) through :mod:`vlsforest.sim.helios`, the home of the HELIOS++ export (scenes and
+surveys).
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import yaml
 
-from vlsforest.domain.cubes import cube_triangles
 from vlsforest.domain.labels import GROUND_ID, SURROUNDING_ID, object_ids
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.voxel_model import VoxelModel
@@ -139,12 +135,11 @@ def assemble_scene(out: Path, model: VoxelModel, targets, stems: dict, ground_z:
 
 
 def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Path:
-    """Write a SCENE.yaml as a HELIOS++ scene: every part type the simulator reads.
+    """Write a SCENE.yaml as a HELIOS++ scene folder: every part type the simulator reads.
 
-    The scene is read by the simulator's own reader (:meth:`vlsforest.sim.Scene.from_yaml`),
-    so every part it accepts is exported, and a bad part fails before anything is written:
-    planes and meshes as OBJ, voxels in full cells as a ``.vox`` (``fixed`` mode), cubes
-    scaled about their cell centres as a ``.vox`` (``scaled`` mode), other cubes as OBJ cubes.
+    The HELIOS++ export lives in :mod:`vlsforest.sim.helios`; this is its
+    :func:`~vlsforest.sim.helios.export_scene` (a survey goes with
+    :func:`~vlsforest.sim.helios.export_survey`).
 
     Parameters
     ----------
@@ -161,72 +156,9 @@ def export_helios(scene_yaml, out_dir, scene_id: str = "vlsforest_scene") -> Pat
         ``out_dir/scene.xml``. Part ids are our object ids, so HELIOS++'s ``hitObjectId`` matches
         our ``object_id``.
     """
-    from vlsforest.io.atomic import atomic_dir, write_text
-    from vlsforest.io.mesh import TriangleMesh, write_mesh
-    from vlsforest.io.vox import make_vox, write_vox
-    from vlsforest.sim.scene import Scene
+    from vlsforest.sim.helios import export_scene
 
-    scene_yaml = Path(scene_yaml)
-    out_dir = Path(out_dir)
-    scene = Scene.from_yaml(scene_yaml)
-    doc = yaml.safe_load(scene_yaml.read_text())
-    lines = ['<?xml version="1.0" encoding="UTF-8"?>', "<document>",
-             f"  <scene id={quoteattr(scene_id)} name={quoteattr(str(doc.get('name') or scene_id))}>"]
-
-    def material(part):
-        return (f"      <!-- reflectance {part.material.reflectance} at the scanner wavelength; "
-                f"classification {part.classification} -->")
-
-    def obj_filter(fname):
-        return ['      <filter type="objloader">',
-                f'        <param type="string" key="filepath" value={quoteattr(fname)} />', "      </filter>"]
-
-    def vox_filter(fname, mode):
-        out = ['      <filter type="detailedVoxels">',
-               f'        <param type="string" key="filepath" value={quoteattr(fname)} />',
-               f'        <param type="string" key="intersectionMode" value="{mode}" />']
-        if mode == "scaled":
-            out.append('        <param type="double" key="intersectionArgument" value="0.5" />')
-        return out + ["      </filter>"]
-
-    with atomic_dir(out_dir) as tmp:
-        for g in scene.part_geometries():
-            part = g["part"]
-            pid = part.object_id
-            lines.append(f'    <part id="{pid}">')
-            if g["kind"] == "plane":
-                x0, y0, x1, y1 = g["extent"]
-                z = float(g["z"])
-                v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
-                fname = f"part_{pid}.obj"
-                write_mesh(tmp / fname, TriangleMesh(v, np.array([[0, 1, 2], [0, 2, 3]])))
-                lines += obj_filter(fname)
-            elif g["kind"] == "mesh":
-                fname = f"part_{pid}.obj"
-                write_mesh(tmp / fname, TriangleMesh(g["vertices"], g["faces"]))
-                lines += obj_filter(fname)
-            else:
-                ijk, size, half, centre = g["ijk"], g["size"], g["half"], g["centre"]
-                origin = np.asarray(g["origin"], dtype=np.float64)
-                centred = centre is None or np.allclose(centre, origin + (ijk + 0.5) * size)
-                if half is None or centred:
-                    lo = ijk.min(axis=0)
-                    cols, pad_max, mode = {}, None, "fixed"
-                    if half is not None:  # HELIOS++ scaled side size·(PAD/pad_max)^0.5 = 2·half
-                        cols, pad_max, mode = {"PadBVTotal": (2.0 * half / size) ** 2}, 1.0, "scaled"
-                    fname = f"part_{pid}.vox"
-                    write_vox(tmp / fname, make_vox(ijk - lo, size, origin + lo * size, cols, max_pad=pad_max,
-                                                    header={"type": "TLS", "build-version": "1.4.3"}))
-                    lines += vox_filter(fname, mode)
-                else:
-                    v, f = cube_triangles(centre, half)
-                    fname = f"part_{pid}.obj"
-                    write_mesh(tmp / fname, TriangleMesh(v, f))
-                    lines += obj_filter(fname)
-            lines += [material(part), "    </part>"]
-        lines += ["  </scene>", "</document>", ""]
-        write_text(tmp / "scene.xml", "\n".join(lines))
-    return out_dir / "scene.xml"
+    return export_scene(scene_yaml, out_dir, scene_id=scene_id)
 
 
 __all__ = ["DEFAULT_REFLECTANCE", "assemble_scene", "crown_points", "export_helios"]

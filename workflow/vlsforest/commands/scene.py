@@ -11,8 +11,12 @@ Sub-commands (the workflow runs them in this order):
     meshed stem points) with their tree ids.
 ``build --voxels voxels.npz --targets targets.csv --site site.json --stems STEMS_DIR -o DIR/scene.yaml``
     the SCENE.yaml (ground plane, stem meshes, voxel crowns; see :mod:`vlsforest.scene`).
-``helios SCENE.yaml -o DIR``
-    the same scene as HELIOS++ scene XML with OBJ / ``.vox`` parts.
+``helios SCENE.yaml -o DIR [--survey SURVEY.yaml]``
+    the same scene as HELIOS++ scene XML with OBJ / ``.vox`` parts; with ``--survey`` also the
+    survey (``survey.xml``, ``scanner.xml``, ``platform.xml``) in the same folder, so that
+    ``cd DIR && helios survey.xml`` runs what ``vlsforest simulate SCENE.yaml SURVEY.yaml`` runs
+    (:mod:`vlsforest.sim.helios`). A setting HELIOS++ cannot run is an error unless
+    ``--allow-approximations``, which writes the documented downgrade and warns.
 """
 
 from __future__ import annotations
@@ -52,8 +56,19 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--helios", type=Path, default=None, help="also export HELIOS++ scene XML into this folder")
     b.add_argument("-o", "--output", required=True, type=Path, help="SCENE.yaml")
     declare_outputs(b, output=YAML, helios=FOLDER)
-    h = sub.add_parser("helios", help="export a SCENE.yaml as HELIOS++ scene XML")
+    h = sub.add_parser("helios", help="export a SCENE.yaml (and a SURVEY.yaml) as HELIOS++ XML",
+                       description="Write a scene as HELIOS++ scene XML with OBJ / .vox parts; with --survey also "
+                                   "the survey, scanner and platform XML, run by 'cd OUTPUT && helios survey.xml' "
+                                   "(HELIOS++ 1.0.8 and 2.x; 2.x also: 'helios OUTPUT/survey.xml --assets OUTPUT/').")
     h.add_argument("scene", type=Path)
+    h.add_argument("--survey", type=Path, default=None,
+                   help="SURVEY.yaml to export too (survey.xml, scanner.xml, platform.xml)")
+    h.add_argument("--name", default=None, help="the survey's name in HELIOS++ (default: the SURVEY.yaml's stem)")
+    h.add_argument("--trajectory-interval", type=float, default=0.0, metavar="S",
+                   help="HELIOS++ trajectory output interval in seconds (default 0: none)")
+    h.add_argument("--allow-approximations", action="store_true",
+                   help="write settings HELIOS++ cannot run (elliptical beam, physical detector, trajectory noise, "
+                        "…) as documented approximations, with a warning each, instead of stopping")
     h.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     declare_outputs(h, output=FOLDER)
     p.set_defaults(func=run)
@@ -154,7 +169,22 @@ def run(args) -> int:
             export_helios(out, args.helios, scene_id=args.method or "vlsforest")
         print(f"scene: {out} ({model.n_voxels} voxels)")
         return 0
-    from vlsforest.scene import export_helios
+    if args.survey is None:
+        if args.allow_approximations or args.name is not None or args.trajectory_interval != 0.0:
+            raise ConfigError("--allow-approximations, --name and --trajectory-interval need --survey")
+        from vlsforest.scene import export_helios
 
-    print(export_helios(args.scene, args.output))
+        print(export_helios(args.scene, args.output))
+        return 0
+    import sys
+
+    from vlsforest.sim.helios import export_survey
+
+    path, approximations = export_survey(args.scene, args.survey, args.output, name=args.name,
+                                         trajectory_interval_s=args.trajectory_interval,
+                                         allow_approximations=args.allow_approximations)
+    for a in approximations:
+        print(f"scene helios: approximation: {a}", file=sys.stderr)
+    print(path)
+    print(f"run: cd {args.output} && helios {path.name}")
     return 0
