@@ -629,7 +629,7 @@ def test_the_diagnosis_draws_its_own_trajectory_noise_realisation():
     process share no realisation: their channels are uncorrelated over a long flight, each with
     the process' σ; the diagnosis' seed is deterministic and differs between diagnosis seeds."""
     from vlsforest.diagnose.core import _own_realisation
-    from vlsforest.sim.survey import TrajectoryNoise, _SmoothNoise
+    from vlsforest.sim.trajectory import SmoothNoise, TrajectoryNoise
 
     survey = {"scanner": "riegl_minivux1uav", "seed": 2}
     own = _own_realisation(survey, 0)
@@ -638,13 +638,13 @@ def test_the_diagnosis_draws_its_own_trajectory_noise_realisation():
     assert _own_realisation({"scanner": "x", "seed": 3}, 0)["seed"] != own["seed"]
     noise = TrajectoryNoise(position_sigma_m=0.08, attitude_sigma_deg=0.0, correlation_s=2.0)
     t = np.arange(0.0, 4000.0, 0.25)
-    rec, sim = _SmoothNoise(noise, survey["seed"])(t), _SmoothNoise(noise, own["seed"])(t)
+    rec, sim = SmoothNoise(noise, survey["seed"])(t), SmoothNoise(noise, own["seed"])(t)
     for c in range(3):
         assert np.std(rec[:, c]) == pytest.approx(0.08, rel=0.15)
         assert np.std(sim[:, c]) == pytest.approx(0.08, rel=0.15)
         assert abs(np.corrcoef(rec[:, c], sim[:, c])[0, 1]) < 0.15
     # the survey's own seed gives the recording's realisation exactly (what the diagnosis avoids)
-    assert np.array_equal(_SmoothNoise(noise, 2)(t), rec)
+    assert np.array_equal(SmoothNoise(noise, 2)(t), rec)
 
 
 def test_library_reads_baselines_and_applies_values():

@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 
 from vlsforest.errors import ConfigError
+from vlsforest.sim.deflector import deflect, tls_grid
+from vlsforest.sim.pulses import PulseBatch
 from vlsforest.sim.scanner import (
     PRESETS,
     REAL_BEAMS,
     datasheet_divergence,
-    deflect,
     emission_half_angle_deg,
     fwhm_to_1e2,
     scanner_from_dict,
     scanner_from_preset,
-    tls_grid,
     validate_scanner,
 )
-from vlsforest.sim.survey import PulseBatch, load_survey, survey_from_dict
+from vlsforest.sim.survey import load_survey, survey_from_dict
 
 FIELDS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle_deg", "source_id")
 
@@ -257,6 +257,76 @@ def test_conic_directions_lie_on_the_cone():
     assert counts.min() > 0.9 * counts.mean()
 
 
+def _documented_pattern(sc, k):
+    """The deflector patterns of vlsforest.sim.deflector's docstring, slot by slot in plain Python:
+    (emitted, direction, scan_dir, scan angle) in the body frame."""
+    out = []
+    for kk in k.tolist():
+        if sc.deflector == "tls":
+            n_el = int(round((sc.tls_v_fov_deg[1] - sc.tls_v_fov_deg[0]) / sc.tls_v_step_deg)) + 1
+            az = math.radians(sc.tls_h_fov_deg[0] + (kk // n_el) * sc.tls_h_step_deg)
+            el_deg = sc.tls_v_fov_deg[0] + (kk % n_el) * sc.tls_v_step_deg
+            el = math.radians(el_deg)
+            out.append((True, (math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)),
+                        (-math.sin(el) * math.sin(az), -math.sin(el) * math.cos(az), math.cos(el)), el_deg))
+            continue
+        lines = kk * sc.scan_freq_hz / sc.prf_hz
+        line, phase = math.floor(lines + 1e-12), (lines + 1e-12) % 1.0 - 1e-12
+        if sc.deflector == "conic":
+            phi, c = 2 * math.pi * phase, math.radians(sc.scan_angle_deg)
+            d = (math.sin(c) * math.sin(phi), math.sin(c) * math.cos(phi), -math.cos(c))
+            out.append((True, d, (math.cos(phi), -math.sin(phi), 0.0), math.degrees(math.atan2(d[0], -d[2]))))
+            continue
+        sign = 1.0
+        if sc.deflector == "polygon":
+            m = sc.max_scan_angle_deg
+            a = -m + 2 * m * phase
+        elif sc.deflector == "rotating":
+            a = -180.0 + 360.0 * phase
+        else:  # oscillating: a triangle wave, back on odd lines
+            t = sc.scan_angle_deg
+            sign = -1.0 if line % 2 else 1.0
+            a = sign * (-t + 2 * t * phase)
+        window = min(sc.effective_max_scan_angle_deg, sc.scan_angle_deg)
+        if sc.deflector in ("polygon", "rotating") and abs(a) > window + 1e-9:
+            out.append((False, None, None, None))
+            continue
+        r = math.radians(a)
+        out.append((True, (math.sin(r), 0.0, -math.cos(r)), (sign * math.cos(r), 0.0, sign * math.sin(r)), a))
+    return out
+
+
+@pytest.mark.parametrize("scanner", [
+    "riegl_vq780i", "riegl_minivux1uav",
+    custom("polygon", max_scan_angle_deg=35.0, scan_freq_hz=13.0),
+    custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0),
+    custom("oscillating", scan_freq_hz=11.0),
+    custom("conic", scan_angle_deg=12.0, scan_freq_hz=3.0),
+    "tls",
+])
+def test_deflect_follows_the_documented_patterns(scanner):
+    """The compiled deflectors against the docstring's formulas evaluated slot by slot."""
+    if scanner == "tls":
+        sc = survey_from_dict(tls_survey()).scanner
+        k = np.arange(0, 180 * 101, 7)
+    else:
+        sc = survey_from_dict(airborne(scanner)).scanner
+        k = np.arange(0, 30_000, 3)
+    emitted, direction, scan_dir, angle = deflect(sc, k)
+    ref = _documented_pattern(sc, k)
+    # slots at the edge of the emission window (within rounding of the window) are not compared
+    sure = np.array([not e or abs(abs(a) - min(sc.effective_max_scan_angle_deg, sc.scan_angle_deg)) > 1e-6
+                     if sc.deflector in ("polygon", "rotating") else True for e, _, _, a in ref])
+    assert sure.mean() > 0.99
+    np.testing.assert_array_equal(emitted[sure], np.array([e for e, _, _, _ in ref])[sure])
+    rows = np.cumsum(emitted) - 1
+    keep = sure & emitted
+    ref_e = [r for r, s in zip(ref, keep) if s]
+    np.testing.assert_allclose(direction[rows[keep]], [r[1] for r in ref_e], atol=1e-12)
+    np.testing.assert_allclose(scan_dir[rows[keep]], [r[2] for r in ref_e], atol=1e-12)
+    np.testing.assert_allclose(angle[rows[keep]], [r[3] for r in ref_e], atol=1e-9)
+
+
 DEFLECTOR_SURVEYS = {
     "polygon": lambda: airborne(custom("polygon", max_scan_angle_deg=35.0, scan_freq_hz=13.0)),
     "rotating": lambda: airborne(custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0)),
@@ -363,13 +433,13 @@ def test_scan_line_bound_is_tight_for_a_small_far_box():
     """The bound of one scan line from 100 m up to a 2 m box below: the passing angles lie within
     a few box-radii / range of the direction to the box; a box beside the scan plane: none pass;
     the platform inside the box: no bound."""
-    from vlsforest.sim.survey import _line_window
+    from vlsforest.sim.pulses import _line_window
 
     s = survey_from_dict(airborne(custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0),
                                   legs=[{"start": [0, 0, 100], "end": [0, 100, 100]}]))
-    rot = np.ascontiguousarray(np.array([[np.asarray(e, np.float64) for e in row] for row in s._rot]).reshape(3, 3, -1))
-    args = (s._p0, s._vel, rot, s.scanner.prf_hz, s.scanner.scan_freq_hz)
-    n_k = int(s._offsets[1] - s._offsets[0])
+    m = s.motion
+    args = (m.p0, m.vel, m.rot, s.scanner.prf_hz, s.scanner.scan_freq_hz)
+    n_k = int(m.offsets[1] - m.offsets[0])
     # the line at t ≈ 0.5 s (platform at y ≈ 5 m) and a 2 m box straight below it
     line = float(np.floor(0.5 * s.scanner.scan_freq_hz))
     mode, phi, beta = _line_window(0, line, n_k, *args, np.array([-1.0, 4.0, -1.0]), np.array([1.0, 6.0, 1.0]), 1e-3)

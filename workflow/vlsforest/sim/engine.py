@@ -26,9 +26,6 @@ modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² hal
 
 from __future__ import annotations
 
-import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 import os
 import sys
 import time
@@ -42,6 +39,7 @@ from vlsforest.sim.beam import cones_meet_box, subray_directions, subray_pattern
 from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
                                     detection_constants, energy_constants, hit_energy, las_intensity,
                                     range_noise)
+from vlsforest.sim.workers import WorkerDied, fork_map
 
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
@@ -126,7 +124,7 @@ class SimulationResult:
 
 
 class _Job:
-    """Everything a worker needs, shared with forked workers through a module global."""
+    """Everything a block needs; forked workers inherit it (:func:`~vlsforest.sim.workers.fork_map`)."""
 
     def __init__(self, scene, survey, seed, keep_hits, block_slots, keep_pulses=True, region=None,
                  hits_only=False):
@@ -180,9 +178,6 @@ class _Job:
                 and not getattr(scene, "has_grids", False) and not self.labels)
 
 
-_JOB: _Job | None = None
-
-
 def _expected_rays(job: _Job, n_blocks: int, n_sample: int = 64) -> float:
     """Sub-rays the job will trace, estimated from the pulses of up to ``n_sample`` evenly
     spread blocks (the same beam-box test as the blocks themselves; deterministic)."""
@@ -202,8 +197,7 @@ def _expected_rays(job: _Job, n_blocks: int, n_sample: int = 64) -> float:
     return traced / max(slots, 1) * survey.n_slots * job.pattern.n
 
 
-def _run_block(b: int):
-    job = _JOB
+def _run_block(job: _Job, b: int):
     start = b * job.block_slots
     stop = min(start + job.block_slots, job.survey.n_slots)
     if job.fused and not job.keep_pulses:
@@ -229,7 +223,7 @@ def _warm_up(job: _Job, n_blocks: int, max_blocks: int = 256) -> None:
     workers redo it) and one ray through each voxel grid.
     """
     for b in range(min(n_blocks, max_blocks)):
-        if _run_block(b)[3] > 0:
+        if _run_block(job, b)[3] > 0:
             break
     for grid in getattr(job.scene, "grids", ()):
         lo, hi = grid.bounds
@@ -507,7 +501,6 @@ def _check_region(region):
 def _run_blocks(job: _Job, workers, progress, t0):
     """Run every block of ``job`` (forked workers when more than one) and yield the block
     results in block order."""
-    global _JOB
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
                                 or workers < 1):
         raise ConfigError(f"workers must be an integer ≥ 1 (None: all CPUs), got {workers!r}")
@@ -521,33 +514,28 @@ def _run_blocks(job: _Job, workers, progress, t0):
         scene.prepare()  # build voxel grids and the Embree BVH once, before forking
     requested = workers or os.cpu_count() or 1
     workers = min(requested, max(n_blocks, 1))
-    _JOB = job
-    pool = None
+    if workers <= 1 or n_blocks <= 1:
+        # one CPU asked for: the voxel-grid kernel runs without threads too
+        job.serial = requested <= 1
+        it = (_run_block(job, b) for b in range(n_blocks))
+    else:
+        # numba's default (workqueue) threading layer is not fork-safe: the forked workers
+        # (and the warm-up that compiles their kernels) trace serially
+        job.serial = True
+        _warm_up(job, n_blocks)
+        it = fork_map(_run_block, job, range(n_blocks), workers)
     try:
-        if workers <= 1 or n_blocks <= 1:
-            # one CPU asked for: the voxel-grid kernel runs without threads too
-            job.serial = requested <= 1
-            it = map(_run_block, range(n_blocks))
-        else:
-            # numba's default (workqueue) threading layer is not fork-safe: the forked workers
-            # (and the warm-up that compiles their kernels) trace serially
-            job.serial = True
-            _warm_up(job, n_blocks)
-            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"))
-            it = pool.map(_run_block, range(n_blocks))
         for k, r in enumerate(it):
             yield r
             if progress and (k % max(1, n_blocks // 10) == 0 or k == n_blocks - 1):
                 tty = sys.stderr.isatty()
                 print(f"{chr(13) if tty else ''}simulate: block {k + 1}/{n_blocks} ({100 * (k + 1) / n_blocks:.0f} %, "
                       f"{time.perf_counter() - t0:.0f} s)", end="" if tty else "\n", file=sys.stderr, flush=True)
-    except BrokenProcessPool:
+    except WorkerDied:
         raise VlsforestError("a simulation worker process died (out of memory?); "
                              "try fewer workers (--workers 1)") from None
     finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        _JOB = None
+        it.close()
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
 

@@ -1,45 +1,13 @@
-"""Scanner settings, device presets and deflector patterns.
+"""Scanner settings, device presets, their validation and the beam divergence conventions.
 
 A scanner is described by a frozen :class:`ScannerSettings`. Surveys name one of the
 :data:`PRESETS` and may override any field except ``name`` and ``deflector``
 (:func:`scanner_from_preset` validates the result and raises
 :class:`~vlsforest.errors.ConfigError` naming the offending key).
 
-Deflector patterns
-------------------
-:func:`deflect` turns the slot index *within one flight line or scan* into the beam direction
-in the platform (body) frame. Frame: x = right, y = forward (flight direction), z = up; nadir
-is −z. Angles are in degrees unless the name says otherwise. ``f = scan_freq_hz / prf_hz`` is
-the fraction of a line swept per slot, and every flight line starts a new scan line.
-
-``polygon``
-    Sawtooth. The mirror angle of slot k is ``a = −M + 2M·frac(k·f)`` with M the device
-    half-sweep ``max_scan_angle_deg``; a line holds ``PRF/scan_freq`` slots spread evenly over
-    [−M, +M). A pulse is emitted only if ``|a| ≤ min(effective_max_scan_angle_deg,
-    scan_angle_deg)`` (HELIOS++ 1.0.8's ``PolygonMirrorBeamDeflector``): the RIEGL VQ-780i's
-    mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its PRF.
-``rotating``
-    A 360° mirror turning ``scan_freq_hz`` times a second: ``a = −180 + 360·frac(k·f)``
-    (slot 0 looks at the zenith, then the beam sweeps left → nadir → right). Emitted only if
-    ``|a| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``; with the ±90° survey window of
-    the miniVUX-1UAV about half of the slots are emitted.
-``oscillating``
-    Triangle wave between ±scan_angle_deg, ``PRF/scan_freq`` slots per line (one line = one
-    sweep from one side to the other; even lines sweep left → right, odd lines back). The
-    turn-around is a sharp corner (no quadratic turn-around offsets as in HELIOS++ v1.0.x,
-    no turning pulses as at HEAD). Every slot is emitted.
-``conic`` (Palmer)
-    Fixed cone of half angle ``scan_angle_deg`` about nadir; the azimuth φ (from forward
-    towards right) advances ``360·f`` per slot. Uses the survey frequency (HELIOS++ uses the
-    device's maximum frequency: a quirk not reproduced). Every slot is emitted.
-``tls``
-    A grid of nodes: azimuths ``tls_h_fov_deg[0] + i·tls_h_step_deg`` (clockwise from the head's
-    forward axis; a full 360° circle does not repeat its start), elevations
-    ``tls_v_fov_deg[0] + j·tls_v_step_deg`` up to ``tls_v_fov_deg[1]``; slot order is
-    azimuth-major (one vertical line after another). Every slot is emitted. ``scan_freq_hz``,
-    ``scan_angle_deg`` and ``max_scan_angle_deg`` are not used.
-
-:func:`emission_half_angle_deg` gives the emitted half angle of each pattern.
+``deflector`` names one of :data:`DEFLECTORS`; the patterns themselves (the beam direction of
+each pulse slot) are :mod:`vlsforest.sim.deflector`. :func:`emission_half_angle_deg` gives the
+emitted half angle of each pattern.
 
 Beam divergence conventions
 ---------------------------
@@ -57,13 +25,6 @@ two input keys that name its convention, accepted wherever scanner settings are 
     ``fwhm_to_1e2(θ) / 2``.
 
 :data:`REAL_BEAMS` holds the datasheet beams of the preset devices in these terms.
-
-Every pattern also gives ``scan_dir``: the unit vector, perpendicular to the beam, in which the
-beam sweeps at that instant (the time derivative of the direction, normalised; for ``tls`` the
-direction of increasing elevation; for the back sweep of ``oscillating`` it points back), and the
-signed scan angle written to LAS: the across-track deflection from nadir, ``atan2(d_x, −d_z)``
-(positive = right of track; equal to the mirror angle for polygon, rotating and oscillating), or
-the elevation for ``tls``.
 """
 
 from __future__ import annotations
@@ -84,17 +45,15 @@ __all__ = [
     "ScannerSettings",
     "apply_overrides",
     "datasheet_divergence",
-    "deflect",
     "emission_half_angle_deg",
     "fwhm_to_1e2",
     "INPUT_KEYS",
     "scanner_from_dict",
     "scanner_from_preset",
-    "tls_grid",
     "validate_scanner",
 ]
 
-#: the deflector kinds understood by :func:`deflect`
+#: the deflector kinds (:mod:`vlsforest.sim.deflector`)
 DEFLECTORS = ("polygon", "rotating", "oscillating", "conic", "tls")
 
 #: input keys that give a beam divergence in a datasheet convention (see the module docstring);
@@ -607,128 +566,3 @@ def scanner_from_dict(d: dict, where: str = "scanner") -> ScannerSettings:
     settings = ScannerSettings(name=name, deflector=deflector, **vals)
     validate_scanner(settings, where)
     return settings
-
-
-# --------------------------------------------------------------------------- deflectors
-
-
-def tls_grid(s: ScannerSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuth and elevation nodes of one TLS scan (degrees).
-
-    Returns
-    -------
-    azimuth_deg : ndarray, shape (n_az,)
-        ``h0 + i·h_step`` up to ``h1``; a full 360° circle stops before ``h0 + 360``.
-    elevation_deg : ndarray, shape (n_el,)
-        ``v0 + j·v_step`` up to ``v1``.
-    """
-    h0, h1 = s.tls_h_fov_deg
-    v0, v1 = s.tls_v_fov_deg
-    span = h1 - h0
-    if span >= 360.0 - 1e-9:
-        n_az = int(math.ceil(360.0 / s.tls_h_step_deg - 1e-9))
-    else:
-        n_az = int(math.floor(span / s.tls_h_step_deg + 1e-9)) + 1
-    n_el = int(math.floor((v1 - v0) / s.tls_v_step_deg + 1e-9)) + 1
-    return h0 + np.arange(n_az) * s.tls_h_step_deg, v0 + np.arange(n_el) * s.tls_v_step_deg
-
-
-def _line_phase(k: np.ndarray, freq: float, prf: float) -> tuple[np.ndarray, np.ndarray]:
-    """Line number and phase in [0, 1) of slot k for `freq` lines per second.
-
-    Exact for integer-valued frequencies (``k·freq`` and ``line·prf`` are exact in float64), so
-    that line boundaries fall on the right slots.
-    """
-    x = k.astype(np.float64) * freq
-    line = np.floor(x / prf)
-    frac = (x - line * prf) / prf
-    low = frac < 0
-    line[low] -= 1
-    frac[low] += 1
-    high = frac >= 1
-    line[high] += 1
-    frac[high] -= 1
-    return line.astype(np.int64), frac
-
-
-def _across_track(angle_deg: np.ndarray):
-    """Body-frame direction and sweep direction of an across-track deflection."""
-    a = np.radians(angle_deg)
-    sa, ca = np.sin(a), np.cos(a)
-    direction = np.zeros((len(a), 3))
-    scan_dir = np.zeros((len(a), 3))
-    direction[:, 0] = sa
-    direction[:, 2] = -ca
-    scan_dir[:, 0] = ca
-    scan_dir[:, 2] = sa
-    return direction, scan_dir
-
-
-def deflect(s: ScannerSettings, k: np.ndarray):
-    """Beam pattern of slots ``k`` (counted from the start of a flight line or scan).
-
-    Parameters
-    ----------
-    s : ScannerSettings
-        The scanner.
-    k : ndarray of int
-        Slot indices within the line/scan, ``k ≥ 0``.
-
-    Returns
-    -------
-    emitted : ndarray of bool, shape (n,)
-        Whether the slot's pulse is emitted.
-    direction : ndarray, shape (m, 3)
-        Unit beam directions in the body frame (x right, y forward, z up), emitted slots only.
-    scan_dir : ndarray, shape (m, 3)
-        Unit sweep directions, perpendicular to ``direction``, emitted slots only.
-    scan_angle_deg : ndarray, shape (m,)
-        Signed across-track angle from nadir (tls: elevation), emitted slots only.
-    """
-    k = np.asarray(k, dtype=np.int64)
-    d = s.deflector
-    if d == "polygon":
-        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
-        m = s.max_scan_angle_deg
-        angle = -m + 2.0 * m * frac
-        emitted = np.abs(angle) <= emission_half_angle_deg(s) * (1 + 1e-12)
-        angle = angle[emitted]
-        direction, scan_dir = _across_track(angle)
-        return emitted, direction, scan_dir, angle
-    if d == "rotating":
-        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
-        angle = -180.0 + 360.0 * frac
-        emitted = np.abs(angle) <= emission_half_angle_deg(s) * (1 + 1e-12)
-        angle = angle[emitted]
-        direction, scan_dir = _across_track(angle)
-        return emitted, direction, scan_dir, angle
-    if d == "oscillating":
-        line, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
-        t = s.scan_angle_deg
-        back = (line % 2) == 1
-        angle = np.where(back, t - 2.0 * t * frac, -t + 2.0 * t * frac)
-        direction, scan_dir = _across_track(angle)
-        scan_dir[back] *= -1.0
-        return np.ones(len(k), dtype=bool), direction, scan_dir, angle
-    if d == "conic":
-        _, frac = _line_phase(k, s.scan_freq_hz, s.prf_hz)
-        phi = 2.0 * np.pi * frac
-        c = math.radians(s.scan_angle_deg)
-        sp, cp = np.sin(phi), np.cos(phi)
-        direction = np.stack([math.sin(c) * sp, math.sin(c) * cp, np.full_like(phi, -math.cos(c))], axis=1)
-        scan_dir = np.stack([cp, -sp, np.zeros_like(phi)], axis=1)
-        angle = np.degrees(np.arctan2(direction[:, 0], -direction[:, 2]))
-        return np.ones(len(k), dtype=bool), direction, scan_dir, angle
-    if d == "tls":
-        az, el = tls_grid(s)
-        n_el = len(el)
-        i_az, i_el = np.divmod(k, n_el)
-        if len(k) and i_az.max() >= len(az):
-            raise ValueError(f"slot {int(k.max())} beyond the {len(az) * n_el} slots of a TLS scan")
-        a = np.radians(az[i_az])
-        e = np.radians(el[i_el])
-        sa, ca, se, ce = np.sin(a), np.cos(a), np.sin(e), np.cos(e)
-        direction = np.stack([ce * sa, ce * ca, se], axis=1)
-        scan_dir = np.stack([-se * sa, -se * ca, ce], axis=1)
-        return np.ones(len(k), dtype=bool), direction, scan_dir, el[i_el]
-    raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {d!r})")

@@ -1,0 +1,329 @@
+"""Deflector patterns: the beam direction of a pulse slot in the platform (body) frame.
+
+A scanner's deflector turns the slot index *within one flight line or scan* into the beam
+direction in the body frame: x = right, y = forward (flight direction), z = up; nadir is −z.
+Angles are in degrees unless the name says otherwise. ``f = scan_freq_hz / prf_hz`` is the
+fraction of a line swept per slot, and every flight line starts a new scan line.
+
+``polygon``
+    Sawtooth. The mirror angle of slot k is ``a = −M + 2M·frac(k·f)`` with M the device
+    half-sweep ``max_scan_angle_deg``; a line holds ``PRF/scan_freq`` slots spread evenly over
+    [−M, +M). A pulse is emitted only if ``|a| ≤ min(effective_max_scan_angle_deg,
+    scan_angle_deg)`` (HELIOS++ 1.0.8's ``PolygonMirrorBeamDeflector``): the RIEGL VQ-780i's
+    mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its PRF.
+``rotating``
+    A 360° mirror turning ``scan_freq_hz`` times a second: ``a = −180 + 360·frac(k·f)``
+    (slot 0 looks at the zenith, then the beam sweeps left → nadir → right). Emitted only if
+    ``|a| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``; with the ±90° survey window of
+    the miniVUX-1UAV about half of the slots are emitted.
+``oscillating``
+    Triangle wave between ±scan_angle_deg, ``PRF/scan_freq`` slots per line (one line = one
+    sweep from one side to the other; even lines sweep left → right, odd lines back). The
+    turn-around is a sharp corner (no quadratic turn-around offsets as in HELIOS++ v1.0.x,
+    no turning pulses as at HEAD). Every slot is emitted.
+``conic`` (Palmer)
+    Fixed cone of half angle ``scan_angle_deg`` about nadir; the azimuth φ (from forward
+    towards right) advances ``360·f`` per slot. Uses the survey frequency (HELIOS++ uses the
+    device's maximum frequency: a quirk not reproduced). Every slot is emitted.
+``tls``
+    A grid of nodes (:func:`tls_grid`): azimuths ``tls_h_fov_deg[0] + i·tls_h_step_deg``
+    (clockwise from the head's forward axis; a full 360° circle does not repeat its start),
+    elevations ``tls_v_fov_deg[0] + j·tls_v_step_deg`` up to ``tls_v_fov_deg[1]``; slot order is
+    azimuth-major (one vertical line after another). Every slot is emitted. ``scan_freq_hz``,
+    ``scan_angle_deg`` and ``max_scan_angle_deg`` are not used.
+
+:func:`~vlsforest.sim.scanner.emission_half_angle_deg` gives the emitted half angle of each
+pattern.
+
+Every pattern also gives ``scan_dir``: the unit vector, perpendicular to the beam, in which the
+beam sweeps at that instant (the time derivative of the direction, normalised; for ``tls`` the
+direction of increasing elevation; for the back sweep of ``oscillating`` it points back), and the
+signed scan angle written to LAS: the across-track deflection from nadir, ``atan2(d_x, −d_z)``
+(positive = right of track; equal to the mirror angle for polygon, rotating and oscillating), or
+the elevation for ``tls``.
+
+One implementation
+------------------
+The patterns are compiled per-slot functions (:func:`sweep`, :func:`across_track_frame`,
+:func:`conic_frame`, :func:`node_frame`). :func:`deflect` runs them over an array of slots; the
+compiled pulse pass of :mod:`vlsforest.sim.pulses` calls the same functions slot by slot, so
+both give the same bits. A scanner's pattern enters them as the numbers of a
+:class:`DeflectorPattern` (:func:`deflector_pattern`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from vlsforest.errors import ConfigError
+from vlsforest.sim.scanner import DEFLECTORS, ScannerSettings, emission_half_angle_deg
+
+__all__ = [
+    "CONIC",
+    "OSCILLATING",
+    "POLYGON",
+    "ROTATING",
+    "TLS",
+    "DeflectorPattern",
+    "across_track_frame",
+    "conic_frame",
+    "deflect",
+    "deflect_pattern",
+    "deflector_pattern",
+    "node_frame",
+    "sweep",
+    "tls_grid",
+]
+
+#: the pattern codes of the compiled functions, in the order of
+#: :data:`~vlsforest.sim.scanner.DEFLECTORS`
+POLYGON, ROTATING, OSCILLATING, CONIC, TLS = range(5)
+
+
+@dataclass(frozen=True, eq=False)
+class DeflectorPattern:
+    """A scanner's deflector as the numbers the compiled per-slot functions take.
+
+    Attributes
+    ----------
+    kind : int
+        :data:`POLYGON`, :data:`ROTATING`, :data:`OSCILLATING`, :data:`CONIC` or :data:`TLS`.
+    prf : float
+        Pulse repetition frequency, Hz.
+    freq : float
+        Scan lines (conic: rotations) per second; 0 for tls.
+    a, b : float
+        The sweep angle ``a + b·phase`` (degrees) of polygon and rotating; oscillating sweeps
+        ``−a + b·phase`` on even lines and ``a − b·phase`` on odd ones; 0 for conic and tls.
+    window : float
+        A slot is emitted when ``|angle| <= window`` (inf: every slot).
+    sin_cone, cos_cone : float
+        Sine and cosine of the conic half angle (0 and 1 for the other patterns).
+    az_r, el_r : ndarray
+        The tls grid (:func:`tls_grid`) in radians; empty for the other patterns.
+    el_deg : ndarray
+        The tls elevations in degrees (the scan angle of a tls slot).
+    """
+
+    kind: int
+    prf: float
+    freq: float
+    a: float
+    b: float
+    window: float
+    sin_cone: float
+    cos_cone: float
+    az_r: np.ndarray
+    el_r: np.ndarray
+    el_deg: np.ndarray
+
+    def args(self) -> tuple:
+        """The attributes in the order the compiled functions of this module and of
+        :mod:`vlsforest.sim.pulses` take them."""
+        return (self.kind, self.prf, self.freq, self.a, self.b, self.window, self.sin_cone, self.cos_cone,
+                self.az_r, self.el_r, self.el_deg)
+
+
+def tls_grid(s: ScannerSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuth and elevation nodes of one TLS scan (degrees).
+
+    Returns
+    -------
+    azimuth_deg : ndarray, shape (n_az,)
+        ``h0 + i·h_step`` up to ``h1``; a full 360° circle stops before ``h0 + 360``.
+    elevation_deg : ndarray, shape (n_el,)
+        ``v0 + j·v_step`` up to ``v1``.
+    """
+    h0, h1 = s.tls_h_fov_deg
+    v0, v1 = s.tls_v_fov_deg
+    span = h1 - h0
+    if span >= 360.0 - 1e-9:
+        n_az = int(math.ceil(360.0 / s.tls_h_step_deg - 1e-9))
+    else:
+        n_az = int(math.floor(span / s.tls_h_step_deg + 1e-9)) + 1
+    n_el = int(math.floor((v1 - v0) / s.tls_v_step_deg + 1e-9)) + 1
+    return h0 + np.arange(n_az) * s.tls_h_step_deg, v0 + np.arange(n_el) * s.tls_v_step_deg
+
+
+def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
+    """The :class:`DeflectorPattern` of a scanner.
+
+    Raises
+    ------
+    ConfigError
+        An unknown deflector.
+    """
+    if s.deflector not in DEFLECTORS:
+        raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {s.deflector!r})")
+    kind = DEFLECTORS.index(s.deflector)
+    a = b = 0.0
+    window = np.inf
+    sin_cone, cos_cone = 0.0, 1.0
+    none = np.zeros(0)
+    az_r = el_r = el_deg = none
+    freq = float(s.scan_freq_hz)
+    if kind == POLYGON:
+        a, b = -s.max_scan_angle_deg, 2.0 * s.max_scan_angle_deg
+        window = emission_half_angle_deg(s) * (1 + 1e-12)
+    elif kind == ROTATING:
+        a, b = -180.0, 360.0
+        window = emission_half_angle_deg(s) * (1 + 1e-12)
+    elif kind == OSCILLATING:
+        a, b = s.scan_angle_deg, 2.0 * s.scan_angle_deg
+    elif kind == CONIC:
+        c = math.radians(s.scan_angle_deg)
+        sin_cone, cos_cone = math.sin(c), math.cos(c)
+    else:
+        az, el = tls_grid(s)
+        az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
+        freq = 0.0
+    return DeflectorPattern(kind, float(s.prf_hz), freq, float(a), float(b), float(window), sin_cone, cos_cone,
+                            az_r, el_r, el_deg)
+
+
+# --------------------------------------------------------------------------- per-slot functions
+
+
+@numba.njit(cache=True, inline="always")
+def sweep(kind, k, prf, freq, a, b):
+    """Scan line, phase, sweep angle and sweep direction of slot ``k`` (not tls).
+
+    The line is ``floor(k·freq / prf)`` and the phase in [0, 1) what remains: exact for
+    integer-valued frequencies (``k·freq`` and ``line·prf`` are exact in float64), so that line
+    boundaries fall on the right slots.
+
+    Returns
+    -------
+    line : float
+        Scan line number (integer-valued).
+    frac : float
+        Phase within the line, [0, 1).
+    angle : float
+        Across-track angle, degrees (conic: 0; its angle comes with :func:`conic_frame`).
+    back : bool
+        An odd line of an oscillating deflector (sweeping right → left).
+    """
+    x = np.float64(k) * freq
+    line = np.floor(x / prf)
+    frac = (x - line * prf) / prf
+    if frac < 0:
+        line -= 1
+        frac += 1
+    if frac >= 1:
+        line += 1
+        frac -= 1
+    back = False
+    if kind == OSCILLATING:
+        back = (np.int64(line) % 2) == 1
+        angle = a - b * frac if back else -a + b * frac
+    else:
+        angle = a + b * frac
+    return line, frac, angle, back
+
+
+@numba.njit(cache=True, inline="always")
+def across_track_frame(r, back):
+    """Body-frame beam direction and sweep direction of an across-track deflection of ``r`` radians.
+
+    Returns
+    -------
+    v0, v1, v2, w0, w1, w2 : float
+        Direction ``(sin r, 0, −cos r)`` and sweep direction ``(cos r, 0, sin r)``, reversed on
+        a back sweep.
+    """
+    sa, ca = np.sin(r), np.cos(r)
+    w0, w1, w2 = ca, 0.0, sa
+    if back:
+        w0, w1, w2 = -w0, -w1, -w2
+    return sa, 0.0, -ca, w0, w1, w2
+
+
+@numba.njit(cache=True, inline="always")
+def conic_frame(frac, sin_cone, cos_cone):
+    """Body-frame beam direction, sweep direction and scan angle (degrees) of a conic slot of phase ``frac``."""
+    phi = 2.0 * np.pi * frac
+    sp, cp = np.sin(phi), np.cos(phi)
+    v0, v1, v2 = sin_cone * sp, sin_cone * cp, -cos_cone
+    return v0, v1, v2, cp, -sp, 0.0, np.degrees(np.arctan2(v0, -v2))
+
+
+@numba.njit(cache=True, inline="always")
+def node_frame(k, az_r, el_r, el_deg):
+    """Body-frame beam direction, sweep direction and scan angle (the elevation, degrees) of tls slot ``k``."""
+    n_el = el_r.shape[0]
+    ia = k // n_el
+    ie = k - ia * n_el
+    ar = az_r[ia]
+    er = el_r[ie]
+    sa, ca, se, ce = np.sin(ar), np.cos(ar), np.sin(er), np.cos(er)
+    return ce * sa, ce * ca, se, -se * sa, -se * ca, ce, el_deg[ie]
+
+
+@numba.njit(cache=True)
+def _deflect(k, kind, prf, freq, a, b, window, sin_cone, cos_cone, az_r, el_r, el_deg):
+    n = k.shape[0]
+    emitted = np.zeros(n, np.bool_)
+    direction = np.empty((n, 3))
+    scan_dir = np.empty((n, 3))
+    angle = np.empty(n)
+    m = 0
+    for i in range(n):
+        if kind == TLS:
+            v0, v1, v2, w0, w1, w2, ang = node_frame(k[i], az_r, el_r, el_deg)
+        else:
+            _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b)
+            if not abs(ang) <= window:
+                continue
+            if kind == CONIC:
+                v0, v1, v2, w0, w1, w2, ang = conic_frame(frac, sin_cone, cos_cone)
+            else:
+                v0, v1, v2, w0, w1, w2 = across_track_frame(np.radians(ang), back)
+        emitted[i] = True
+        direction[m, 0], direction[m, 1], direction[m, 2] = v0, v1, v2
+        scan_dir[m, 0], scan_dir[m, 1], scan_dir[m, 2] = w0, w1, w2
+        angle[m] = ang
+        m += 1
+    return emitted, direction[:m].copy(), scan_dir[:m].copy(), angle[:m].copy()
+
+
+def deflect(s: ScannerSettings, k: np.ndarray):
+    """Beam pattern of slots ``k`` (counted from the start of a flight line or scan).
+
+    Parameters
+    ----------
+    s : ScannerSettings
+        The scanner.
+    k : ndarray of int
+        Slot indices within the line/scan, ``k ≥ 0``.
+
+    Returns
+    -------
+    emitted : ndarray of bool, shape (n,)
+        Whether the slot's pulse is emitted.
+    direction : ndarray, shape (m, 3)
+        Unit beam directions in the body frame (x right, y forward, z up), emitted slots only.
+    scan_dir : ndarray, shape (m, 3)
+        Unit sweep directions, perpendicular to ``direction``, emitted slots only.
+    scan_angle_deg : ndarray, shape (m,)
+        Signed across-track angle from nadir (tls: elevation), emitted slots only.
+
+    Raises
+    ------
+    ValueError
+        A tls slot beyond the scan's grid.
+    """
+    return deflect_pattern(deflector_pattern(s), k)
+
+
+def deflect_pattern(pattern: DeflectorPattern, k: np.ndarray):
+    """:func:`deflect` for a scanner's :class:`DeflectorPattern`."""
+    k = np.ascontiguousarray(k, dtype=np.int64)
+    if pattern.kind == TLS and len(k):
+        n = len(pattern.az_r) * len(pattern.el_r)
+        if int(k.max()) >= n:
+            raise ValueError(f"slot {int(k.max())} beyond the {n} slots of a TLS scan")
+    return _deflect(k, *pattern.args())
