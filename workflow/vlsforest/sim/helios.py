@@ -102,7 +102,7 @@ import yaml
 from vlsforest.domain.cubes import cube_triangles
 from vlsforest.errors import ConfigError
 from vlsforest.sim import DetectorOptions, ScannerSettings, Survey, load_survey
-from vlsforest.sim.scanner import tls_grid
+from vlsforest.sim.deflector import tls_grid
 
 __all__ = ["Approximation", "NO_ATMOSPHERE_VISIBILITY_KM", "PLATFORM_FILE", "SCANNER_FILE", "SCENE_FILE",
            "SURVEY_FILE", "SurveyXml", "export_scene", "export_survey", "survey_documents", "write_scene_xml"]
