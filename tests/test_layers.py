@@ -39,7 +39,7 @@ def test_layers_contract_kept():
     ("domain/labels.py", "import vlsforest.io.las"),                         # domain → io
     ("sim/_embree.py", "from vlsforest.voxels import fixed_voxels"),         # sim → a stage
     ("extract.py", "from vlsforest.synth.species import SPECIES"),          # a stage → another stage
-    ("stats.py", "from vlsforest.commands import check_workers"),           # analysis → commands
+    ("stats/run.py", "from vlsforest.commands import check_workers"),           # analysis → commands
 ])
 def test_layers_contract_catches_an_upward_import(tmp_path, module, line):
     shutil.copytree(PACKAGE, tmp_path / "vlsforest", ignore=shutil.ignore_patterns("__pycache__"))
