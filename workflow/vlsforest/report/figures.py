@@ -94,17 +94,14 @@ _GROUP_COLORS = {"broadleaf": "#4daf4a", "conifer": "#377eb8", "other": "#999999
 
 
 def method_palette(methods) -> dict:
-    """Fixed colour per method: ``reference`` black, the study's methods a fixed palette."""
+    """Colour per method: ``reference`` black, the methods in their given order the colour-blind
+    palette (then a dark one)."""
     base = sns.color_palette("colorblind", 10)
-    known = ("fixed_0.25", "fixed_0.10", "fixed_0.05", "fixed_0.02", "scaled", "scaled_random_shift",
-             "scaled_cog_shift")
     pal = {REFERENCE: (0.0, 0.0, 0.0)}
-    for i, m in enumerate(known):
-        pal[m] = base[i]
-    extra = [m for m in method_order(methods) if m not in pal]
-    more = sns.color_palette("dark", max(len(extra), 1))
-    for i, m in enumerate(extra):
-        pal[m] = more[i % len(more)]
+    ordered = method_order(methods, list(dict.fromkeys(str(m) for m in methods)))
+    more = sns.color_palette("dark", max(len(ordered) - len(base), 1))
+    for i, m in enumerate(ordered):
+        pal[m] = base[i] if i < len(base) else more[(i - len(base)) % len(more)]
     return pal
 
 
@@ -228,9 +225,9 @@ def fig07_percentile_curves(metrics: pd.DataFrame, out, *, n_boot: int = 1000, s
     resamples, seeded by ``seed`` and the panel and method names).
     """
     df = prepare_metrics(metrics, "tree metrics")
-    scen = scenario_order(df["scenario"])
+    scen = scenario_order(df["scenario"], pd.unique(df["scenario"]))
     species = species_order(df["species"])
-    methods = [REFERENCE] + method_order(df["method"])
+    methods = [REFERENCE] + method_order(df["method"], pd.unique(df["method"]))
     pal = method_palette(df["method"])
     with _style():
         fig, axes = _new_figure(len(scen), len(species), sharey=True)
@@ -279,9 +276,9 @@ def fig08_density_deviation(errors: pd.DataFrame, out) -> Path:
     err = _prep_errors(errors)
     e = err[err["metric"].isin(_DENS_COLS)].copy()
     e = e[np.isfinite(e["error"].to_numpy(float))]
-    scen = scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"], pd.unique(err["scenario"]))
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
-    methods = method_order(err["method"])
+    methods = method_order(err["method"], pd.unique(err["method"]))
     pal = method_palette(err["method"])
     e["bin"] = e["metric"].str.slice(5).astype(int)
     with _style():
@@ -320,8 +317,8 @@ def fig08_density_deviation(errors: pd.DataFrame, out) -> Path:
 def fig09_hsd_hmin(errors: pd.DataFrame, out) -> Path:
     """Relative Hsd error (%) and absolute Hmin error (m) per method; violins split by group."""
     err = _prep_errors(errors)
-    scen = scenario_order(err["scenario"])
-    methods = method_order(err["method"])
+    scen = scenario_order(err["scenario"], pd.unique(err["scenario"]))
+    methods = method_order(err["method"], pd.unique(err["method"]))
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
     panels = (("hsd", "rel_error", "Hsd relative error (%)"), ("hmin", "error", "Hmin error (m)"))
     with _style():
@@ -338,8 +335,8 @@ def fig10_multireturn(metrics: pd.DataFrame, out) -> Path:
     """Share of pulses with multiple returns per method and group (bars = mean, dots = trees)."""
     df = prepare_metrics(metrics, "tree metrics")
     df["group"] = df["species"].map(lambda sp: species_group(sp, default=OTHER_GROUP))
-    scen = scenario_order(df["scenario"])
-    order = [REFERENCE] + method_order(df["method"])
+    scen = scenario_order(df["scenario"], pd.unique(df["scenario"]))
+    order = [REFERENCE] + method_order(df["method"], pd.unique(df["method"]))
     groups = [g for g in GROUP_ORDER if (df["group"] == g).any()]
     with _style():
         fig, axes = _new_figure(1, len(scen), sharey=True, panel=(5.2, 3.6))
@@ -368,8 +365,8 @@ def fig10_multireturn(metrics: pd.DataFrame, out) -> Path:
 def fig11_cbh_cpa(errors: pd.DataFrame, out) -> Path:
     """CBH error (m) and CPA error (m²) per method; violins split by group."""
     err = _prep_errors(errors)
-    scen = scenario_order(err["scenario"])
-    methods = method_order(err["method"])
+    scen = scenario_order(err["scenario"], pd.unique(err["scenario"]))
+    methods = method_order(err["method"], pd.unique(err["method"]))
     groups = [g for g in GROUP_ORDER if (err["group"] == g).any()]
     panels = (("cbh", "CBH error (m)"), ("cpa", "CPA error (m²)"))
     with _style():
@@ -385,8 +382,8 @@ def fig11_cbh_cpa(errors: pd.DataFrame, out) -> Path:
 def fig12_height(errors: pd.DataFrame, out) -> Path:
     """Tree height error (m) per method, one violin per species, one panel per scenario."""
     err = _prep_errors(errors)
-    scen = scenario_order(err["scenario"])
-    methods = method_order(err["method"])
+    scen = scenario_order(err["scenario"], pd.unique(err["scenario"]))
+    methods = method_order(err["method"], pd.unique(err["method"]))
     species = species_order(err["species"])
     pal = dict(zip(species, sns.color_palette("Set2", len(species))))
     with _style():
@@ -476,9 +473,9 @@ def fig_voxels_vs_error(errors: pd.DataFrame, voxel_counts: pd.DataFrame, out,
     vc = vc.assign(plot=vc["plot"].astype(str), method=vc["method"].astype(str))
     vc = vc[vc["method"] != REFERENCE].groupby(["plot", "method"], as_index=False)["n_voxels"].sum()
     units = {"hsd": "m", "cbh": "m", "cpa": "m²", "multi_return_pct": "pp", "height": "m", "hmin": "m"}
-    methods = method_order(err["method"])
+    methods = method_order(err["method"], pd.unique(err["method"]))
     pal = method_palette(err["method"])
-    scen = scenario_order(err["scenario"])
+    scen = scenario_order(err["scenario"], pd.unique(err["scenario"]))
     markers = dict(zip(scen, ["o", "s", "^", "D", "v", "P"] * (len(scen) // 6 + 1)))
     with _style():
         fig, axes = _new_figure(1, len(metrics), panel=(3.6, 3.4))
@@ -532,10 +529,10 @@ def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=("sca
 
     df = prepare_metrics(metrics, "tree metrics")
     if scenario not in set(df["scenario"]):
-        scenario = scenario_order(df["scenario"])[-1]
+        scenario = scenario_order(df["scenario"], pd.unique(df["scenario"]))[-1]
     ref = df[(df["method"] == REFERENCE) & (df["scenario"] == scenario)]
     ref = ref[np.isfinite(ref["n_points"].to_numpy(float)) & (ref["n_points"] > 0)]
-    sims = method_order(df["method"])
+    sims = method_order(df["method"], pd.unique(df["method"]))
     chosen = [m for m in methods if m in sims][:2]
     if len(chosen) < 2 and len(sims) >= 2:
         chosen = [sims[0], sims[-1]]
