@@ -41,34 +41,47 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("study", type=Path, help="workflow directory with results/")
     ap.add_argument("--plot", default="P3")
-    ap.add_argument("--scenario", default="uls", choices=["als", "uls"])
-    ap.add_argument("--radius", type=float, default=None, help="extraction radius (default: 0.3 ULS, 0.5 ALS)")
+    ap.add_argument("--scenario", default="uls", help="the scenario's name (its survey and recording)")
+    ap.add_argument("--radius", type=float, default=None,
+                    help="extraction radius (default: the scenario's extraction_radius_m in config/config.yaml)")
     ap.add_argument("--margin", type=float, default=1.0, help="region margin (config diagnosis.region_margin_m)")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
 
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import load_setup
+    from vlsforest.diagnose.simulation import PlotSim
 
     study = a.study.resolve()
     if not (study / "results" / a.plot / "segment").is_dir():
         print(f"bench_diagnose_trace: {study}/results/{a.plot}/segment not found (run the workflow first)",
               file=sys.stderr)
         return 2
+    radius = a.radius
+    if radius is None:
+        import yaml
+
+        scenarios = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())[
+            "scenarios"]
+        if a.scenario not in scenarios:
+            print(f"bench_diagnose_trace: no scenario {a.scenario!r} in config/config.yaml (give --radius)",
+                  file=sys.stderr)
+            return 2
+        radius = scenarios[a.scenario]["extraction_radius_m"]
     os.chdir(study)
     r = f"results/{a.plot}"
-    setup = core.load_setup({"scenario": a.scenario, "seed": a.seed, "plots": {a.plot: {
+    setup = load_setup({"scenario": a.scenario, "seed": a.seed, "plots": {a.plot: {
         "real": f"results/forest/plots/{a.plot}/{a.scenario}.laz", "scene": f"{r}/scaled/scene/scene.yaml",
         "survey": f"{r}/surveys/{a.scenario}.yaml", "segment": f"{r}/segment",
-        "radius": a.radius or (0.3 if a.scenario == "uls" else 0.5), "margin": a.margin}}})
+        "radius": radius, "margin": a.margin}}})
     t0 = time.perf_counter()
-    ps = core._PlotSim(setup.plots[0], setup.seed, setup.workers, lambda m: print(m, flush=True))
+    ps = PlotSim(setup.plots[0], setup.seed, setup.workers, lambda m: print(m, flush=True))
     print(f"set-up (real observables of {len(ps.trees)} trees): {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
     ps.pin({})
     ps.features({})
     print(f"trace + first evaluation: {time.perf_counter() - t0:.1f} s; held after it {_rss_gb():.2f} GB, "
           f"peak {_peak_gb():.2f} GB")
-    pulses, hits = ps._traces[ps._pinned]
+    pulses, hits = ps.trace({})  # the pinned baseline's trace, held in memory
     held = sum(v.nbytes for d in (pulses, hits) for v in d.values()) / 1e9
     print(f"the trace: {len(pulses['slot']):,} pulses with hits, {len(hits['pulse']):,} sub-ray hits, {held:.2f} GB")
     t0 = time.perf_counter()
@@ -79,11 +92,11 @@ def main(argv=None) -> int:
     from vlsforest.diagnose.features import cloud_arrays
     from vlsforest.sim import redetect
 
-    _, sv, _ = ps._key({"range_noise": {"sigma_m": 0.02}})
+    _, sv, _ = ps.setting({"range_noise": {"sigma_m": 0.02}})
     t0 = time.perf_counter()
-    res = redetect(ps._parts, pulses, hits, sv, seed=ps.seed)
+    res = redetect(ps.parts, pulses, hits, sv, seed=ps.seed)
     t1 = time.perf_counter()
-    ps._features(cloud_arrays(res))
+    ps.observables(cloud_arrays(res))
     t2 = time.perf_counter()
     print(f"  re-detection {t1 - t0:.1f} s ({len(res.points['xyz']):,} points), observables {t2 - t1:.1f} s")
     benchresult.record(plot=a.plot, scenario=a.scenario, trace_gb=held, redetect_s=t1 - t0, observables_s=t2 - t1,

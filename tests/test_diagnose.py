@@ -92,7 +92,7 @@ def test_weighted_median_interpolates_between_votes_and_does_not_jump_at_a_near_
     """Two voters of equal weight give their midpoint (their geometric mean on the log scale); a
     voter with 90 % of the weight keeps the estimate 1/10 of the way to the other; a vote holding
     under half the weight moves it continuously — no jump when the weights pass 50:50."""
-    wm = st._weighted_median
+    wm = st.weighted_median
     assert wm([1.0, 3.0], [1.0, 1.0]) == pytest.approx(2.0)
     assert wm([1.0, 4.0], [1.0, 1.0], log=True) == pytest.approx(2.0)
     assert wm([1.0, 3.0], [9.0, 1.0]) == pytest.approx(1.2)
@@ -433,16 +433,17 @@ def test_tree_labeller_built_once_labels_many_clouds_like_extract_reference():
 
 
 def _bare_plot_sim(tmp_path, spill_dir=None):
-    """A :class:`core._PlotSim` with only what its trace cache needs (no scene, no real data)."""
-    from vlsforest.diagnose import core
+    """A :class:`PlotSim` with only what its traces need (no scene, no trees, no real data)."""
+    from vlsforest.diagnose import PlotInput
+    from vlsforest.diagnose.simulation import PlotSim
+    from vlsforest.diagnose.traces import TraceCache
 
-    ps = object.__new__(core._PlotSim)
-    ps.p = core.PlotInput("Q", tmp_path, tmp_path, tmp_path, tmp_path, 0.3)
+    ps = object.__new__(PlotSim)
+    ps.p = PlotInput("Q", tmp_path, tmp_path, tmp_path, tmp_path, 0.3)
     ps.survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3}, "seed": 0,
                  "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
     ps.survey_dir, ps.scene, ps.seed, ps.workers, ps.region = tmp_path, None, 0, 1, None
-    ps._traces, ps._sims, ps._pinned, ps.n_traced, ps.n_loaded, ps.log = {}, {}, None, 0, 0, lambda msg: None
-    ps._spill_dir, ps._keep, ps._spilled, ps._n_written = spill_dir, set(), {}, 0
+    ps.traces = TraceCache("Q", lambda msg: None, spill_dir)
     return ps
 
 
@@ -462,18 +463,18 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
     monkeypatch.setattr(vsim, "trace_hits", fake_trace_hits)
     ps = _bare_plot_sim(tmp_path)
     ps.pin({"range_noise": {"sigma_m": 0.1}})  # stored-hit candidates do not change the trace
-    ps._trace({})
-    ps._trace(div(1.0))  # the survey as given: no new trace
+    ps.trace({})
+    ps.trace(div(1.0))  # the survey as given: no new trace
     assert ps.n_traced == 1
-    ps._trace(div(2.0))
-    ps._trace(div(3.0))  # evicts scale 2, keeps the pinned baseline
-    ps._trace({})
-    assert ps.n_traced == 3 and len(ps._traces) == 2
-    ps._trace(div(2.0))
+    ps.trace(div(2.0))
+    ps.trace(div(3.0))  # evicts scale 2, keeps the pinned baseline
+    ps.trace({})
+    assert ps.n_traced == 3 and len(ps.traces) == 2
+    ps.trace(div(2.0))
     ps.pin(div(2.0))  # a new baseline (an accepted effect): the old one may go
-    ps._trace(div(3.0))
-    ps._trace(div(2.0))
-    assert ps.n_traced == 5 and len(ps._traces) == 2
+    ps.trace(div(3.0))
+    ps.trace(div(2.0))
+    assert ps.n_traced == 5 and len(ps.traces) == 2
     base = np.array(vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad)
     assert traced == [tuple(base), tuple(2 * base), tuple(3 * base), tuple(2 * base), tuple(3 * base)]
 
@@ -484,7 +485,7 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     stage asks for them; traces the next stage does not ask for are deleted from disk; the last
     stage writes nothing; without a spill folder everything is traced again."""
     import vlsforest.sim as vsim
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import traces
 
     traced = []
 
@@ -503,19 +504,19 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     ps = _bare_plot_sim(tmp_path, spill)
     ps.pin({})
     ps.keep([div(2.0), div(3.0)])  # a stage's signatures, not the last stage
-    first = {k: dict(v) for k, v in zip(("pulses", "hits"), ps._trace(div(2.0)))}
-    ps._trace(div(3.0))   # div 2 leaves memory: to disk
-    ps._trace(div(4.0))   # div 3 leaves memory: to disk (div 4 is no signature)
+    first = {k: dict(v) for k, v in zip(("pulses", "hits"), ps.trace(div(2.0)))}
+    ps.trace(div(3.0))   # div 2 leaves memory: to disk
+    ps.trace(div(4.0))   # div 3 leaves memory: to disk (div 4 is no signature)
     assert ps.n_traced == 3 and len(list(spill.iterdir())) == 2
     ps.keep([div(2.0), div(5.0)], spill=False)  # the last stage: div 3 is not needed again
     assert len(list(spill.iterdir())) == 1
-    again = ps._trace(div(2.0))
+    again = ps.trace(div(2.0))
     assert ps.n_traced == 3 and ps.n_loaded == 1
     for name, arrays in zip(("pulses", "hits"), again):
         assert list(arrays) == list(first[name])
         for k, v in arrays.items():
             assert v.dtype == first[name][k].dtype and np.array_equal(v, first[name][k])
-    ps._trace(div(5.0))   # div 2 leaves memory again: already on disk, not written twice
+    ps.trace(div(5.0))   # div 2 leaves memory again: already on disk, not written twice
     assert ps.n_traced == 4 and len(list(spill.iterdir())) == 1
     assert len(traced) == 4
 
@@ -525,13 +526,13 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
         (folder / "part.npy").write_bytes(b"x")
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(core, "_save_trace", no_space)
+    monkeypatch.setattr(traces, "save_trace", no_space)
     notes = []
-    ps.log = notes.append
+    ps.traces.log = notes.append
     ps.keep([div(6.0), div(7.0)])
-    ps._trace(div(6.0))
-    ps._trace(div(7.0))
-    ps._trace(div(6.0))
+    ps.trace(div(6.0))
+    ps.trace(div(7.0))
+    ps.trace(div(6.0))
     assert ps.n_traced == 7 and ps.n_loaded == 1
     assert sum("No space left" in n and "traced again" in n for n in notes) == 2  # div 6, then div 7
     assert len(list(spill.iterdir())) == 0  # the partial folder is gone (div 2's went with keep())
@@ -540,36 +541,37 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     plain.pin({})
     plain.keep([div(2.0), div(3.0)])
     for v in (2.0, 3.0, 2.0):
-        plain._trace(div(v))
+        plain.trace(div(v))
     assert plain.n_traced == 3 and plain.n_loaded == 0
 
 
 def test_diagnosis_leaves_no_spill_folder_behind_when_it_fails(tmp_path):
     """The spill folder lives beside the output and goes away with the run, also on an error."""
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import PlotInput, Setup, diagnose
     from vlsforest.errors import InputDataError
 
-    setup = core.Setup(scenario="uls", plots=[core.PlotInput("Q", tmp_path / "none.laz", tmp_path, tmp_path,
-                                                             tmp_path / "segment", 0.3)])
+    setup = Setup(scenario="uls", plots=[PlotInput("Q", tmp_path / "none.laz", tmp_path, tmp_path,
+                                                   tmp_path / "segment", 0.3)])
     with pytest.raises(InputDataError, match="no trees.csv"):
-        core.diagnose(setup, log=lambda m: None, work_dir=tmp_path / "out")
+        diagnose(setup, log=lambda m: None, work_dir=tmp_path / "out")
     assert (tmp_path / "out").is_dir() and list((tmp_path / "out").iterdir()) == []
     # a place that cannot hold it (under a file) is one clear error, before any work
     (tmp_path / "file").write_text("x")
     with pytest.raises(ConfigError, match="cannot hold the diagnosis' temporary traces"):
-        core.diagnose(setup, log=lambda m: None, work_dir=tmp_path / "file" / "out")
+        diagnose(setup, log=lambda m: None, work_dir=tmp_path / "file" / "out")
 
 
 def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
     """sim-config `beam_sample_quality` sets the sub-ray rings of every simulation of the
     diagnosis and keeps the survey's other settings (and the survey mapping it came from)."""
-    from vlsforest.diagnose import core, load_setup
+    from vlsforest.diagnose import load_setup
+    from vlsforest.diagnose.simulation import resampled
     from vlsforest.sim import survey_from_dict
 
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"beam_sample_quality": 3, "window_size_ns": 1.5},
               "platform": {"speed_mps": 5.0, "legs": [{"start": [0, 0, 60], "end": [0, 50, 60], "active": True}]}}
-    assert core._resampled(survey, None) is survey
-    fine = core._resampled(survey, 5)
+    assert resampled(survey, None) is survey
+    fine = resampled(survey, 5)
     sc = survey_from_dict(fine).scanner
     assert sc.beam_sample_quality == 5 and sc.window_size_ns == 1.5
     assert survey["overrides"]["beam_sample_quality"] == 3
@@ -593,7 +595,8 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
     # ground columns under the crowns); the pulses it skips leave no return that an observable
     # reads, so the observables equal those of a trace over a far wider region, bit for bit
     # (the noise-free survey: no random draws that depend on which pulses a block holds)
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import PlotInput
+    from vlsforest.diagnose.simulation import PlotSim, own_realisation
 
     workdir, _, _ = quick_run
     res = workdir / "results" / "Q1"
@@ -604,13 +607,13 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
     quiet.write_text(yaml.safe_dump(survey))
     sims = {}
     for margin in (0.0, 15.0):
-        p = core.PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
+        p = PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
                            res / "scaled" / "scene" / "scene.yaml", quiet, res / "segment", 0.3, margin)
-        ps = core._PlotSim(p, 0, 2, lambda m: None)
-        assert ps._key({})[1].scanner.range_noise_m == 0
+        ps = PlotSim(p, 0, 2, lambda m: None)
+        assert ps.setting({})[1].scanner.range_noise_m == 0
         # its trajectory-noise realisation is its own, not the survey file's (the recording's)
-        assert ps.survey["seed"] == core._own_realisation(survey, 0)["seed"]
-        pulses, _ = ps._trace({})
+        assert ps.survey["seed"] == own_realisation(survey, 0)["seed"]
+        pulses, _ = ps.trace({})
         sims[margin] = (ps.region, len(pulses["slot"]), ps.features({}))
     (r0, n0, f0), (r1, n1, f1) = sims[0.0], sims[15.0]
     assert r1[0] == pytest.approx(r0[0] - 15) and r1[3] == pytest.approx(r0[3] + 15)
@@ -628,14 +631,14 @@ def test_the_diagnosis_draws_its_own_trajectory_noise_realisation():
     """A recording made with the survey's seed and the diagnosis' simulations of the same noise
     process share no realisation: their channels are uncorrelated over a long flight, each with
     the process' σ; the diagnosis' seed is deterministic and differs between diagnosis seeds."""
-    from vlsforest.diagnose.core import _own_realisation
+    from vlsforest.diagnose.simulation import own_realisation
     from vlsforest.sim.trajectory import SmoothNoise, TrajectoryNoise
 
     survey = {"scanner": "riegl_minivux1uav", "seed": 2}
-    own = _own_realisation(survey, 0)
-    assert own["seed"] == _own_realisation(survey, 0)["seed"] != 2 and survey["seed"] == 2
-    assert _own_realisation(survey, 1)["seed"] != own["seed"]
-    assert _own_realisation({"scanner": "x", "seed": 3}, 0)["seed"] != own["seed"]
+    own = own_realisation(survey, 0)
+    assert own["seed"] == own_realisation(survey, 0)["seed"] != 2 and survey["seed"] == 2
+    assert own_realisation(survey, 1)["seed"] != own["seed"]
+    assert own_realisation({"scanner": "x", "seed": 3}, 0)["seed"] != own["seed"]
     noise = TrajectoryNoise(position_sigma_m=0.08, attitude_sigma_deg=0.0, correlation_s=2.0)
     t = np.arange(0.0, 4000.0, 0.25)
     rec, sim = SmoothNoise(noise, survey["seed"])(t), SmoothNoise(noise, own["seed"])(t)
@@ -678,40 +681,126 @@ def test_library_reads_baselines_and_applies_values():
         lib.select(["wind"])
 
 
-def test_bad_sim_config_is_one_clear_error(tmp_path):
+#: a plot's inputs in a sim-config (the paths are not read by load_setup)
+_PLOT = {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}
+
+
+@pytest.mark.parametrize("change, where, words", [
+    ({"plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c"}}}, "plots.Q1", "'radius' is a required property"),
+    ({"plots": {"Q1": dict(_PLOT, radius=0)}}, "plots.Q1.radius", "less than or equal to the minimum of 0"),
+    ({"plots": {}}, "plots", "should be non-empty"),
+    ({"plots": {"Q1": dict(_PLOT, colour=1)}}, "plots.Q1", "'colour' was unexpected"),
+    ({"scenario": "two words"}, "scenario", "does not match"),
+    ({"colour": 1}, "", "'colour' was unexpected"),
+    ({"candidates": ["wind"]}, "candidates[0]", "'wind' is not one of ['beam_divergence'"),
+    ({"folds": 1}, "folds", "1 is less than the minimum of 2"),
+    ({"grid": 16}, "grid", "16 is greater than the maximum of 15"),
+    ({"beam_sample_quality": 0}, "beam_sample_quality", "0 is less than the minimum of 1"),
+    ({"beam_sample_quality": 2.5}, "beam_sample_quality", "2.5 is not of type 'integer'"),
+    ({"beam_sample_quality": True}, "beam_sample_quality", "True is not of type 'integer'"),
+    ({"realisations": -1}, "realisations", "-1 is less than the minimum of 0"),
+    ({"realisations": 1.5}, "realisations", "1.5 is not of type 'integer'"),
+    ({"workers": 0}, "workers", "0 is less than the minimum of 1"),   # as --workers is checked
+    ({"workers": "two"}, "workers", "'two' is not of type 'integer'"),
+    ({"plots": {"Q1": dict(_PLOT, margin=-1)}}, "plots.Q1.margin", "-1 is less than the minimum of 0"),
+    ({"plots": {"Q1": dict(_PLOT, margin="wide")}}, "plots.Q1.margin", "'wide' is not of type 'number'"),
+    ({"plots": {"Q1": dict(_PLOT, margin=None)}}, "plots.Q1.margin", "None is not of type 'number'"),
+])
+def test_bad_sim_config_is_one_line_naming_the_file_and_key(tmp_path, change, where, words):
     from vlsforest.diagnose import load_setup
 
     bad = tmp_path / "s.yaml"
-    bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c"}}}))
-    with pytest.raises(ConfigError, match="plots.Q1.radius is missing"):
-        load_setup(bad)
-    bad.write_text(yaml.safe_dump({"scenario": "tls", "plots": {}}))
-    with pytest.raises(ConfigError, match="scenario must be als or uls"):
-        load_setup(bad)
-    bad.write_text(yaml.safe_dump({"scenario": "uls", "candidates": ["wind"],
-                                   "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
-    with pytest.raises(ConfigError, match="unknown physics candidate 'wind'"):
+    bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": _PLOT}, **change}))
+    with pytest.raises(ConfigError) as err:
         load_setup(bad, real_dir=tmp_path)
-    for q in (0, 2.5, True):
-        bad.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": q,
-                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
-        with pytest.raises(ConfigError, match="beam_sample_quality must be an integer ≥ 1"):
-            load_setup(bad, real_dir=tmp_path)
-    for n in (-1, 1.5, True):
-        bad.write_text(yaml.safe_dump({"scenario": "uls", "realisations": n,
-                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
-        with pytest.raises(ConfigError, match="realisations must be an integer ≥ 0"):
-            load_setup(bad, real_dir=tmp_path)
-    for n in (0, -2, 1.5, True, "two"):  # the sim-config's own worker count, as --workers is checked
-        bad.write_text(yaml.safe_dump({"scenario": "uls", "workers": n,
-                                       "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c", "radius": 0.3}}}))
-        with pytest.raises(ConfigError, match="workers must be an integer ≥ 1"):
-            load_setup(bad, real_dir=tmp_path)
-    for m in (-1, "wide", None):
-        bad.write_text(yaml.safe_dump({"scenario": "uls", "plots": {"Q1": {"scene": "a", "survey": "b", "segment": "c",
-                                                                          "radius": 0.3, "margin": m}}}))
-        with pytest.raises(ConfigError, match="plots.Q1.margin must be a number ≥ 0"):
-            load_setup(bad, real_dir=tmp_path)
+    msg = str(err.value)
+    assert msg.startswith(f"{bad}: {where}: " if where else f"{bad}: ") and words in msg and "\n" not in msg, msg
+
+
+def test_sim_config_defaults_and_the_checks_across_keys(tmp_path):
+    """A sim-config that names only its plots gets the documented defaults; what no schema can
+    say is checked by hand: a scenario from the command line or the file, and a real recording
+    from the plot's ``real`` or under ``--real``."""
+    from vlsforest.diagnose import CANDIDATES, load_setup
+
+    s = load_setup({"plots": {"Q1": _PLOT}}, real_dir=tmp_path, scenario="uls")
+    assert (s.folds, s.grid, s.seed, s.workers, s.realisations, s.beam_sample_quality) == (3, 7, 0, 2, 3, None)
+    assert s.candidates == list(CANDIDATES) and not s.candidates_given
+    assert s.plots[0].margin == 1.0 and s.plots[0].radius == 0.3 and s.plots[0].real == tmp_path / "Q1" / "uls.laz"
+    # the command line's scenario overrides the file's
+    assert load_setup({"scenario": "als", "plots": {"Q1": _PLOT}}, real_dir=tmp_path, scenario="uls").scenario == "uls"
+    with pytest.raises(ConfigError, match=r"^sim-config: no scenario \(give --scenario NAME"):
+        load_setup({"plots": {"Q1": _PLOT}}, real_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"^sim-config: plots.Q1.real is missing and no --real DIR was given$"):
+        load_setup({"plots": {"Q1": _PLOT}}, scenario="uls")
+    given = load_setup({"plots": {"Q1": dict(_PLOT, real="r.laz")}, "candidates": ["range_noise"]}, scenario="uls")
+    assert given.plots[0].real.name == "r.laz" and given.candidates == ["range_noise"] and given.candidates_given
+
+
+def test_the_workflow_schema_bounds_the_diagnosis_as_the_sim_config_does():
+    """The workflow's ``diagnosis`` block (config/schema.yaml, self-contained) and the sim-config
+    it becomes (vlsforest.diagnose.setup.SCHEMA) accept the same values."""
+    from pathlib import Path
+
+    from vlsforest.diagnose.setup import SCHEMA
+
+    wf = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "schema.yaml").read_text())
+    block = wf["properties"]["diagnosis"]["properties"]
+    bounds = ("type", "minimum", "maximum", "exclusiveMinimum", "minItems")
+    for key in ("folds", "grid", "beam_sample_quality", "realisations", "candidates"):
+        assert {b: block[key].get(b) for b in bounds} == {b: SCHEMA["properties"][key].get(b) for b in bounds}, key
+    assert set(block["candidates"]["items"]["enum"]) == set(SCHEMA["properties"]["candidates"]["items"]["enum"])
+    margin = SCHEMA["properties"]["plots"]["additionalProperties"]["properties"]["margin"]
+    assert {b: block["region_margin_m"].get(b) for b in bounds} == {b: margin.get(b) for b in bounds}
+    # a scenario of the workflow is a scenario of the sim-config
+    assert wf["properties"]["scenarios"]["propertyNames"]["pattern"] == SCHEMA["properties"]["scenario"]["pattern"]
+
+
+def _segment_folder(folder, n=5):
+    """A segmentation folder of ``n`` small trees (trees.csv, trees/<id>.laz)."""
+    from vlsforest.io.las import PointCloud, write_las
+
+    rng = np.random.default_rng(0)
+    (folder / "trees").mkdir(parents=True)
+    rows = []
+    for t in range(1, n + 1):
+        xyz = rng.normal([4.0 * t, 0.0, 8.0], [0.5, 0.5, 3.0], (50, 3))
+        write_las(folder / "trees" / f"{t}.laz", PointCloud(xyz, {}))
+        rows.append({"tree_id": t, "x": 4.0 * t, "y": 0.0, "z": 0.0})
+    pd.DataFrame(rows).to_csv(folder / "trees.csv", index=False)
+    return folder
+
+
+def test_any_scenario_name_is_a_scenario_and_the_platform_comes_from_the_survey(tmp_path):
+    """A scenario is a name (here "airborne"): it names the default recording and labels the
+    report; what the diagnosis simulates comes from each plot's survey, and a survey whose
+    platform does not fly lines is one clear error."""
+    from vlsforest.diagnose import PlotInput, load_setup
+    from vlsforest.diagnose.simulation import PlotSim
+
+    s = load_setup({"scenario": "airborne", "plots": {"Q1": _PLOT}}, real_dir=tmp_path)
+    assert s.scenario == "airborne" and s.plots[0].real == tmp_path / "Q1" / "airborne.laz"
+    s = load_setup({"recording": "uls", "plots": {"Q1": _PLOT}}, real_dir=tmp_path, scenario="airborne")
+    assert s.scenario == "airborne" and s.plots[0].real == tmp_path / "Q1" / "uls.laz"
+    # the command line takes the name and goes on to the plot's inputs
+    cfg = tmp_path / "airborne.yaml"
+    cfg.write_text(yaml.safe_dump({"plots": {"Q1": dict(_PLOT, segment=str(tmp_path / "none"))}}))
+    proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
+                           "--sim-config", str(cfg), "--scenario", "airborne", "-o", str(tmp_path / "o.json")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "no trees.csv" in proc.stderr, proc.stderr
+    # the platform: a static (TLS) survey is no airborne recording, whatever the scenario is called
+    seg = _segment_folder(tmp_path / "segment")
+    static = tmp_path / "static.yaml"
+    static.write_text(yaml.safe_dump({"scanner": "riegl_vz400", "platform": {
+        "type": "static", "positions": [{"position": [0, 0, 1.5]}]}}))
+    with pytest.raises(ConfigError, match=r"static.yaml: the diagnosis compares airborne recordings, but this "
+                                          r"survey's platform is 'static'"):
+        PlotSim(PlotInput("Q1", tmp_path / "none.laz", tmp_path / "scene.yaml", static, seg, 0.3), 0, 1,
+                lambda m: None)
+
+
+def test_cli_input_errors_are_one_clear_line(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(tmp_path),
                            "--sim-config", str(tmp_path / "missing.yaml"), "--scenario", "uls",
                            "-o", str(tmp_path / "o.json")], capture_output=True, text=True)
@@ -765,19 +854,20 @@ def test_hidden_detection_threshold_is_found_fitted_and_improves_heldout_trees(q
     survey["detector"] = {"mode": "physical"}
     (tmp_path / "uls.yaml").write_text(yaml.safe_dump(survey))
     cfg = tmp_path / "sim.yaml"
+    # the scenario is a name of the user's (the recording it compares with: uls)
     cfg.write_text(yaml.safe_dump({
-        "scenario": "uls", "seed": 0, "folds": 3,
+        "recording": "uls", "seed": 0, "folds": 3,
         "plots": {"Q1": {"scene": str(res / "scaled" / "scene" / "scene.yaml"),
                          "survey": str(tmp_path / "uls.yaml"),
                          "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
     out = tmp_path / "uls.json"
     proc = subprocess.run([sys.executable, "-m", "vlsforest.cli", "diagnose", "--real", str(forest / "plots"),
-                           "--sim-config", str(cfg), "--scenario", "uls", "-o", str(out),
+                           "--sim-config", str(cfg), "--scenario", "airborne", "-o", str(out),
                            "--figure", str(tmp_path / "uls.png")], capture_output=True, text=True, timeout=1500)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rep = json.loads(out.read_text())
     print("\n" + proc.stderr[-2500:])
-    assert {"significant_mismatch", "mismatches", "effects", "accepted"} <= set(rep)
+    assert {"significant_mismatch", "mismatches", "effects", "accepted"} <= set(rep) and rep["scenario"] == "airborne"
     assert rep["significant_mismatch"] is True and rep["n_trees"] >= 10
     top = rep["effects"][0]
     assert top["name"] in ("detection_threshold", "reflectance")  # the link-budget group
@@ -869,6 +959,21 @@ _STANDIN_FEATURES = (
 )
 
 
+#: the stand-in survey's beam at FWHM (mrad), by hand: its 0.25 mrad 1/e² half angle is a 0.5 mrad
+#: full angle at 1/e², and a Gaussian beam's full width at 1/e² is √(2 / ln 2) times its FWHM
+_STANDIN_FWHM = 0.5 / np.sqrt(2.0 / np.log(2.0))
+
+
+def _standin_beam(assign: dict) -> tuple:
+    """The beam (major, minor FWHM, mrad) that an assignment makes in the stand-in survey, by the
+    footprint candidates' definitions: an ellipse's values are the whole beam (else the survey's
+    circle), and a divergence scale multiplies whatever beam that is."""
+    ell = assign.get("elliptical_footprint")
+    major, minor = (ell["major_mrad"], ell["minor_mrad"]) if ell else (_STANDIN_FWHM, _STANDIN_FWHM)
+    scale = assign.get("beam_divergence", {}).get("scale", 1.0)
+    return major * scale, minor * scale
+
+
 class _LinearStudy:
     """A stand-in for the simulations: observables respond linearly to each candidate's
     parameters (a fixed signature per unit step), trees differ by noise, and the "real" trees
@@ -899,7 +1004,7 @@ class _LinearStudy:
             return out
 
         self.n_traced = self.n_loaded = 0
-        self.kept = []  # (stage's assignments, spill) per round, as core._attribute marks them
+        self.kept = []  # (stage's assignments, spill) per round, as the search marks them
         self.simulated = set()
         self.base = normal(n_trees) * 3
         self.G = {name: normal() for name in lib.CANDIDATES if name != "peak_rule"}
@@ -934,10 +1039,9 @@ class _LinearStudy:
         # the footprint from the beam the candidates make (applied as the diagnosis applies them):
         # its size (equal-solid-angle divergence, relative to the survey's) along the circle's
         # signature, its aspect ratio (log major / minor) along the ellipse's
-        fp = {n: v for n, v in assign.items() if lib.CANDIDATES[n].group == "footprint"}
-        if fp:
-            major, minor = lib.beam_fwhm(self.survey, fp)
-            size = np.sqrt(major * minor) / lib.equivalent_circular_divergence(self.survey, {}) - 1.0
+        if any(lib.CANDIDATES[n].group == "footprint" for n in assign):
+            major, minor = _standin_beam(assign)
+            size = np.sqrt(major * minor) / _STANDIN_FWHM - 1.0
             out = out + (size * self.scale["beam_divergence"] * self.G["beam_divergence"]
                          + np.log(major / minor) * self.scale["elliptical_footprint"] * self.G["elliptical_footprint"])
         return out
@@ -969,10 +1073,10 @@ class _TracingStudy(_LinearStudy):
         self.cached_first, self.last, self.sims, self.traces = cached_first, None, {}, []
 
     def _held(self, assign):
-        from vlsforest.diagnose.core import _trace_part
+        from vlsforest.diagnose.simulation import trace_part
 
-        tp = json.dumps(_trace_part(assign), sort_keys=True)
-        return tp, tp in (json.dumps(_trace_part(self.pinned), sort_keys=True), self.last)
+        tp = json.dumps(trace_part(assign), sort_keys=True)
+        return tp, tp in (json.dumps(trace_part(self.pinned), sort_keys=True), self.last)
 
     def has_trace(self, assign):
         return self.cached_first and self._held(assign)[1]
@@ -989,12 +1093,12 @@ class _TracingStudy(_LinearStudy):
         return self.sims[key]
 
 
-def _run_logic(monkeypatch, study, seed=0):
-    from vlsforest.diagnose import core
+def _run_logic(monkeypatch, study, seed=0, **setup):
+    """The diagnosis of a :class:`Setup` (``scenario``, ``seed`` and ``setup``'s fields) on the stand-in ``study``."""
+    from vlsforest.diagnose import Setup, diagnose, run
 
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
-    setup = core.Setup(scenario="uls", plots=[], seed=seed)
-    return core.diagnose(setup, log=lambda m: None)
+    monkeypatch.setattr(run, "Study", lambda setup, log, spill_dir=None: study)
+    return diagnose(Setup(**{"scenario": "uls", "plots": [], "seed": seed, **setup}), log=lambda m: None)
 
 
 @pytest.mark.parametrize("name,values,key", [
@@ -1032,14 +1136,13 @@ def test_a_held_trace_is_rendered_before_it_is_evicted(monkeypatch):
 
 
 def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(monkeypatch):
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import Setup, diagnose, run
 
     hidden = {"range_noise": {"sigma_m": 0.06}}
     study = _LinearStudy(hidden)
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
-    setup = core.Setup(scenario="uls", plots=[], seed=0)
-    setup.oracle = hidden
-    rep = core.diagnose(setup, log=lambda m: None)
+    monkeypatch.setattr(run, "Study", lambda setup, log, spill_dir=None: study)
+    setup = Setup(scenario="uls", plots=[], seed=0)
+    rep = diagnose(setup, log=lambda m: None, truth=hidden)
     o = rep["oracle"]
     # told the truth, only the reconstruction error is left: less than as given, and the fit
     # (within 20 % of the truth) lands close to it, not worse on any observable than the truth
@@ -1077,19 +1180,16 @@ def test_oracle_measures_the_recoverable_error_and_the_fit_against_the_truth(mon
     assert isinstance(o["worse_told_truth"], list)
     # the oracle's simulations are not the diagnosis' cost: counted apart
     traced = _TracingStudy(hidden | {"beam_divergence": {"scale": 1.8}})
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: traced)
-    setup.oracle = hidden | {"beam_divergence": {"scale": 1.8}}
-    o3 = core.diagnose(setup, log=lambda m: None)
+    monkeypatch.setattr(run, "Study", lambda setup, log, spill_dir=None: traced)
+    o3 = diagnose(setup, log=lambda m: None, truth=hidden | {"beam_divergence": {"scale": 1.8}})
     assert o3["cost"]["traced_simulations"] + o3["oracle"]["cost"]["traced_simulations"] == traced.n_traced
     assert o3["oracle"]["cost"]["traced_simulations"] >= 1  # the truth's divergence was never simulated
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
-    setup.oracle = hidden
+    monkeypatch.setattr(run, "Study", lambda setup, log, spill_dir=None: study)
     # told the truth, what is left per observable is the stand-in's reconstruction error
     left = np.nanmean(study.real.to_numpy(float) - study.base - study._response(hidden), axis=0)
     assert [o["residual_told_truth"][f] for f in FEATURES] == pytest.approx(left)
     # a deliberately wrong "truth" is seen: the fit is then better than the oracle's value
-    setup.oracle = {"range_noise": {"sigma_m": 0.0}}
-    o2 = core.diagnose(setup, log=lambda m: None)["oracle"]
+    o2 = diagnose(setup, log=lambda m: None, truth={"range_noise": {"sigma_m": 0.0}})["oracle"]
     assert o2["error_told_truth"] == pytest.approx(o["error_given"])
     assert o2["worse_told_truth"] == []
 
@@ -1104,16 +1204,13 @@ def test_logic_null_and_out_of_library_are_not_attributed(monkeypatch):
 def test_tls_occlusion_needs_scaled_cubes(monkeypatch):
     """Scenes of a fixed-size method: the candidate is left out of the default library, and
     naming it explicitly is a configuration error."""
-    from vlsforest.diagnose import core
-
     study = _LinearStudy({"range_noise": {"sigma_m": 0.06}})
     study.has_scaled = False
     rep = _run_logic(monkeypatch, study)
     assert rep["accepted"][:1] == ["range_noise"]
     assert all(r["name"] != "tls_occlusion" for rnd in rep["rounds"] for r in rnd["ranking"])
-    setup = core.Setup(scenario="uls", plots=[], candidates=["range_noise", "tls_occlusion"], candidates_given=True)
     with pytest.raises(ConfigError, match="tls_occlusion corrects PAD-scaled"):
-        core.diagnose(setup, log=lambda m: None)
+        _run_logic(monkeypatch, study, candidates=["range_noise", "tls_occlusion"], candidates_given=True)
 
 
 def test_occlusion_correction_raises_upper_crown_cubes_within_their_cells():
@@ -1177,7 +1274,7 @@ def test_logic_finds_two_hidden_effects(monkeypatch):
 
 
 def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved():
-    from vlsforest.diagnose.core import _tie_break
+    from vlsforest.diagnose.search import tie_break
 
     nf = len(FEATURES)
     rng = np.random.default_rng(5)
@@ -1192,12 +1289,12 @@ def test_tie_within_a_group_is_broken_on_its_observables_or_declared_unresolved(
     ranked = [{"name": "beam_divergence", "group": "footprint", "score": 0.80},
               {"name": "elliptical_footprint", "group": "footprint", "score": 0.75}]
     cosm = {(a, b): 0.5 for a in ("beam_divergence", "elliptical_footprint") for b in ("beam_divergence", "elliptical_footprint")}
-    out, note = _tie_break(ranked, {"beam_divergence": div, "elliptical_footprint": ell}, cosm, D, w)
+    out, note = tie_break(ranked, {"beam_divergence": div, "elliptical_footprint": ell}, cosm, D, w)
     assert note["resolved"] and note["winner"] == "elliptical_footprint" and out[0]["name"] == "elliptical_footprint"
     same = {"beam_divergence": ell * 0.999, "elliptical_footprint": ell}
     ranked = [{"name": "elliptical_footprint", "group": "footprint", "score": 0.80},
               {"name": "beam_divergence", "group": "footprint", "score": 0.75}]
-    out, note = _tie_break(ranked, same, cosm, D, w)
+    out, note = tie_break(ranked, same, cosm, D, w)
     assert not note["resolved"] and note["winner"] == "beam_divergence" and "not separated" in note["text"]
 
 
@@ -1205,7 +1302,7 @@ def test_a_tie_across_groups_is_broken_on_both_groups_observables():
     """The ellipse (footprint group) and range noise (noise group) both roughen the ground under
     the crown; a residual that is range noise on the single-return ground goes to range noise,
     even though the footprint group's own observables alone would favour the ellipse."""
-    from vlsforest.diagnose.core import _tie_break
+    from vlsforest.diagnose.search import tie_break
 
     nf = len(FEATURES)
     rng = np.random.default_rng(8)
@@ -1225,7 +1322,7 @@ def test_a_tie_across_groups_is_broken_on_both_groups_observables():
     ranked = [{"name": "elliptical_footprint", "group": "footprint", "score": 0.40},
               {"name": "range_noise", "group": "noise", "score": 0.38}]
     sigs = {"elliptical_footprint": ell, "range_noise": rn}
-    out, note = _tie_break(ranked, sigs, cosm, D, w)
+    out, note = tie_break(ranked, sigs, cosm, D, w)
     assert note["groups"] == ["footprint", "noise"]
     assert note["tie_breakers"] == list(lib.TIE_BREAKERS["footprint"] + lib.TIE_BREAKERS["noise"])
     assert note["resolved"] and note["winner"] == "range_noise" and out[0]["name"] == "range_noise"
@@ -1237,7 +1334,7 @@ def test_a_tie_across_groups_is_broken_on_both_groups_observables():
     assert ev["elliptical_footprint"] > ev["range_noise"]
     # the other way round: a residual that is the ellipse stays with the ellipse
     D2 = np.tile(ell, (12, 1)) + 0.01 * rng.normal(size=(12, nf))
-    out, note = _tie_break(ranked, sigs, cosm, D2, w)
+    out, note = tie_break(ranked, sigs, cosm, D2, w)
     assert note["resolved"] and note["winner"] == "elliptical_footprint"
 
 
@@ -1519,8 +1616,6 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     × √(1 + 1/4) (the recording's draw and the mean of four simulated ones) widens the CI, moved
     with the estimate, which then holds σ. Without further draws the estimate is draw 0's and the
     CI that of the trees and the observables' disagreement."""
-    from vlsforest.diagnose import core
-
     hidden = {"trajectory_noise": {"position_sigma_m": 0.08}}
     draws = {"real": 1.25, 0: 1.0, 1: 1.3, 2: 0.8, 3: 1.1}
     rep = _run_logic(monkeypatch, _LinearStudy(hidden, seed=seed, draws=draws), seed=seed)
@@ -1538,8 +1633,7 @@ def test_a_random_candidates_ci_holds_the_scatter_between_draws_of_its_process(m
     trees, ci = eff["ci95_trees"]["position_sigma_m"], eff["ci95"]["position_sigma_m"]
     # without further draws: draw 0's estimate, the CI of the trees and the observables' disagreement
     study = _LinearStudy(hidden, seed=seed, draws=draws)
-    monkeypatch.setattr(core, "_Study", lambda setup, log, spill_dir=None: study)
-    rep0 = core.diagnose(core.Setup(scenario="uls", plots=[], seed=seed, realisations=0), log=lambda m: None)
+    rep0 = _run_logic(monkeypatch, study, seed=seed, realisations=0)
     eff0 = rep0["effects"][0]
     ci0 = eff0["ci95"]["position_sigma_m"]
     assert eff0["parameters"]["position_sigma_m"] == x0 and "realisation_scatter" not in eff0
@@ -1592,12 +1686,12 @@ def test_a_further_draw_of_trajectory_noise_changes_only_the_surveys_seed():
 def test_the_aspect_fit_reuses_the_signature_step(monkeypatch):
     """The aspect's grid (its own 5 points) passes through the reference step, whose simulation
     the signature already made: the stage-2 fit adds 4 ellipses to it (aspect 1 is the baseline)."""
-    from vlsforest.diagnose import core
+    from vlsforest.diagnose import search
 
     study = _LinearStudy({"elliptical_footprint": {"major_mrad": 1.6, "minor_mrad": 0.5}}, recon=0.25)
     fits = []
-    orig = core._fit
-    monkeypatch.setattr(core, "_fit", lambda st_, base, cand, *a: fits.append((dict(base), cand.name)) or
+    orig = search.fit
+    monkeypatch.setattr(search, "fit", lambda st_, base, cand, *a: fits.append((dict(base), cand.name)) or
                         orig(st_, base, cand, *a))
     rep = _run_logic(monkeypatch, study)
     assert rep["accepted"] == ["beam_divergence", "elliptical_footprint"]

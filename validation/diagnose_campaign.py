@@ -3,8 +3,8 @@
 For every forest seed the quick workflow is run once (TLS → segmentation → PAD → voxel scenes, the
 tool's view of the forest); then for every case the quick forest's ALS/ULS is re-recorded with one
 effect hidden (``synthesize(..., physics=…)``) and ``vlsforest.diagnose`` runs blind on it. The
-hidden values are passed only as the *oracle* (to measure the recoverable error), never to the
-attribution.
+hidden values are passed only as its ``truth`` (the report's *oracle*, to measure the recoverable
+error), never to the attribution.
 
 Prints per run: the verdict, the top-ranked candidate and its group, the fitted value vs the
 hidden one, the share of the recoverable held-out error removed, traced simulations and seconds;
@@ -184,14 +184,14 @@ def _run_case(seed: int, case: str, workdir: Path, sim_quality: int | None = Non
     if case in WITHHELD:
         setup.candidates = [n for n, c in CANDIDATES.items() if c.group not in WITHHELD[case]]
         setup.candidates_given = True
-    setup.oracle = CASES[case][1] or None
     from_yaml = Scene.__dict__["from_yaml"]
     if truth_scene:  # every scene the diagnosis loads is the truth (tls_occlusion is then left out)
         truth = _truth_scene(seed)
         Scene.from_yaml = classmethod(lambda cls, path, voxel_transform=None: truth)
     try:
         t0 = time.perf_counter()
-        rep = diagnose(setup, log=lambda m: None, work_dir=workdir / f"seed{seed}")  # traces read back: on disk there
+        rep = diagnose(setup, log=lambda m: None, work_dir=workdir / f"seed{seed}",  # traces read back: on disk there
+                       truth=CASES[case][1] or None)
         dt = time.perf_counter() - t0
     finally:
         Scene.from_yaml = from_yaml

@@ -450,7 +450,7 @@ def diagnosis_param(wildcards):
                 "survey": f"results/{plot}/surveys/{wildcards.scenario}.yaml",
                 "segment": f"results/{plot}/segment",
                 "radius": sc.get("extraction_radius_m", 0.5),
-                # absent: the library's default (vlsforest.diagnose.core.REGION_MARGIN_M)
+                # absent: the library's default (vlsforest.diagnose.setup.REGION_MARGIN_M)
                 **({"margin": d["region_margin_m"]} if "region_margin_m" in d else {}),
             }
             for plot in diagnosis_plots()

@@ -1,4 +1,4 @@
-"""``vlsforest diagnose --real DIR --sim-config FILE --scenario als|uls -o OUT.json`` — physics diagnosis."""
+"""``vlsforest diagnose --real DIR --sim-config FILE --scenario NAME -o OUT.json`` — physics diagnosis."""
 
 from __future__ import annotations
 
@@ -28,7 +28,10 @@ def register(sub) -> None:
     src.add_argument("--sim-config-json", metavar="JSON", help="the same as one JSON string (the workflow's way)")
     p.add_argument("--write-sim-config", metavar="FILE", default=None,
                    help="also write the set-up as YAML (to rerun with --sim-config)")
-    p.add_argument("--scenario", required=True, choices=("als", "uls"))
+    p.add_argument("--scenario", required=True, metavar="NAME",
+                   help="the scenario's name (a key of the config's scenarios): labels the report and names the "
+                        "recording, DIR/<plot>/<NAME>.laz, unless the sim-config names one; the platform and "
+                        "scanner are those of the plots' surveys")
     p.add_argument("-o", "--output", required=True, metavar="OUT.json")
     p.add_argument("--figure", default=None, metavar="PNG", help="also draw the residuals before/after")
     p.add_argument("--workers", type=int, default=None, metavar="N",

@@ -272,7 +272,7 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     it changes sign, linear interpolation gives the value at which that observable alone would
     match (the crossing nearest the loss minimiser when there are several). The estimate is the
     median of these values weighted by ``w_j · range_j²`` (how strongly the parameter moves the
-    observable), interpolated between neighbouring votes (:func:`_weighted_median`; on the log
+    observable), interpolated between neighbouring votes (:func:`weighted_median`; on the log
     scale for ``log``) so that it does not jump between two voters of near-equal weight.
     Observables that never cross — those whose residual is dominated by an error
     the candidate cannot remove, such as the voxel model's — do not vote, so they cannot pull
@@ -283,7 +283,7 @@ def robust_fit(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float, log
     return crossing_votes(x, Ds, w, lo, hi, log, rows)[0]
 
 
-def _weighted_median(values: np.ndarray, weights: np.ndarray, log: bool = False) -> float:
+def weighted_median(values: np.ndarray, weights: np.ndarray, log: bool = False) -> float:
     """Interpolated weighted median: 0.5 located between the values' centred cumulative weights.
 
     Each value sits at the middle of its weight, ``(C_i − w_i / 2) / Σ w`` (``C_i`` the cumulative
@@ -377,7 +377,7 @@ def crossing_votes(x: np.ndarray, Ds: list, w: np.ndarray, lo: float, hi: float,
     wts = np.array([q for _, q in votes.values()])
     # voters whose residual is exactly 0 all along the grid weigh nothing; with no other voter
     # the least-squares grid minimum stands
-    value = float(np.clip(_weighted_median(roots, wts, logt), lo, hi)) if np.any(wts > 0) else x_ls
+    value = float(np.clip(weighted_median(roots, wts, logt), lo, hi)) if np.any(wts > 0) else x_ls
     if not detail:
         return value, votes
     v = np.array([var[j] for j in votes])
