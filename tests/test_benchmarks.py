@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import re
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,3 +59,21 @@ def test_a_benchmark_that_exits_keeps_its_code(tmp_path):
 
     assert br.run("bench_toy", main, [], results_dir=tmp_path) == 4
     assert json.loads((tmp_path / "bench_toy.jsonl").read_text())["exit_code"] == 4
+
+
+def test_study_benchmark_sums_the_rules_benchmark_files(tmp_path):
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_study
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    head = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    (tmp_path / "simulate").mkdir()
+    (tmp_path / "simulate" / "P1_a_als.tsv").write_text(head + "10.0\t0:00:10\t500.5\t1\t1\t1\t0\t0\t90\t9.5\n")
+    (tmp_path / "simulate" / "P2_a_als.tsv").write_text(head + "20.0\t0:00:20\t800.0\t1\t1\t1\t0\t0\t90\t19.0\n")
+    (tmp_path / "synth").mkdir()
+    (tmp_path / "synth" / "P1.tsv").write_text(head)  # a job without a row yet
+    table = bench_study.rule_table(tmp_path)
+    assert table["simulate"] == {"jobs": 2, "cpu_s": 28.5, "wall_s": 30.0, "max_rss_mb": 800.0}
+    assert table["synth"] == {"jobs": 0, "cpu_s": 0.0, "wall_s": 0.0, "max_rss_mb": 0.0}
+    assert bench_study.rule_table(tmp_path / "none") == {}

@@ -25,7 +25,7 @@ PACKAGE = REPO / "workflow" / "vlsforest"
 
 #: every sub-command a rule of the workflow runs
 RULE_COMMANDS = ("synth", "segment", "stems", "extract", "pad", "scene", "voxels", "plan", "simulate",
-                 "collect", "stats", "report", "diagnose")
+                 "collect", "stats", "report", "diagnose", "experiment")
 
 
 # ---------------------------------------------------------------------------------------------
