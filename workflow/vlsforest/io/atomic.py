@@ -8,6 +8,10 @@ the write leaves no partial file at the output path.
 A command that writes several files runs inside :func:`output_transaction` (the command line
 wraps every command in one): the renames are then deferred to the end of the transaction, so
 either every output appears or none does — a failing side output leaves no main output behind.
+Work done in other processes joins the transaction too: a worker runs inside
+:func:`collect_outputs`, which leaves its finished files under their temporary names and hands
+them back as :class:`PendingOutputs`, and the parent takes them into its transaction with
+:func:`adopt_outputs`.
 
 :func:`check_output_path` checks an output path before any work starts (not a folder, a
 documented suffix, a parent that exists or can be created, a place that can be written).
@@ -19,18 +23,22 @@ import contextlib
 import contextvars
 import glob
 import os
+import secrets
 import shutil
 import tempfile
 from pathlib import Path
 
 from vlsforest.errors import OutputPathError
 
-__all__ = ["atomic_path", "atomic_dir", "output_transaction", "flush", "make_folder", "write_text", "write_bytes",
-           "write_csv", "save_figure", "check_output_path", "check_output_dir"]
+__all__ = ["atomic_path", "atomic_dir", "output_transaction", "collect_outputs", "adopt_outputs", "PendingOutputs",
+           "flush", "make_folder", "write_text", "write_bytes", "write_csv", "save_figure", "check_output_path",
+           "check_output_dir"]
 
 
-class _Transaction:
-    """The pending renames ``(temporary, final)`` and the folders made for them, in order."""
+class PendingOutputs:
+    """The outputs of a transaction: renames ``(temporary, final)`` still to do, the folders made
+    for them and the outputs installed early (:func:`flush`), in order. Plain paths: it can be
+    sent from a worker process to its parent."""
 
     def __init__(self):
         self.renames: list = []
@@ -39,8 +47,8 @@ class _Transaction:
 
 
 #: the transaction in progress, or None
-_PENDING: contextvars.ContextVar[_Transaction | None] = contextvars.ContextVar("vlsforest_pending_outputs",
-                                                                               default=None)
+_PENDING: contextvars.ContextVar[PendingOutputs | None] = contextvars.ContextVar("vlsforest_pending_outputs",
+                                                                                 default=None)
 
 
 def _temporary_name(path: Path) -> Path:
@@ -108,6 +116,8 @@ def _make_parent(path: Path) -> list:
     while not folder.exists() and folder != folder.parent:
         missing.append(folder)
         folder = folder.parent
+    if not folder.is_dir():
+        raise OutputPathError(f"{path}: {folder} is a file, expected a folder")
     made = []
     try:
         for folder in reversed(missing):
@@ -128,8 +138,12 @@ def _make_parent(path: Path) -> list:
 
 
 def _remove_empty(folders: list) -> None:
-    """Remove folders (innermost first) that are empty; leave any that hold something."""
-    for folder in reversed(folders):
+    """Remove folders (innermost first) that are empty; leave any that hold something.
+
+    Deepest first, not last made first: the folders of several worker processes
+    (:func:`adopt_outputs`) interleave, one worker's folder inside another's.
+    """
+    for folder in sorted(folders, key=lambda f: len(Path(f).parts), reverse=True):
         try:
             folder.rmdir()
         except OSError:
@@ -220,7 +234,7 @@ def output_transaction():
     if _PENDING.get() is not None:
         yield
         return
-    pending = _Transaction()
+    pending = PendingOutputs()
     token = _PENDING.set(pending)
     try:
         yield
@@ -239,7 +253,65 @@ def output_transaction():
         raise
 
 
-def _abandon(pending: _Transaction, start: int) -> None:
+@contextlib.contextmanager
+def collect_outputs():
+    """Run a worker's part of its parent's outputs: like :func:`output_transaction`, but at the
+    end the finished files stay under their temporary names.
+
+    Yields
+    ------
+    PendingOutputs
+        Filled when the block ends without an exception; return it to the parent, which takes it
+        into its transaction with :func:`adopt_outputs`. On an exception, an interrupt included,
+        everything the block wrote is removed, as in :func:`output_transaction`.
+
+    Raises
+    ------
+    RuntimeError
+        Inside a transaction of the same process (use the transaction itself there).
+    """
+    if _PENDING.get() is not None:
+        raise RuntimeError("collect_outputs: a transaction of this process is in progress")
+    pending = PendingOutputs()
+    token = _PENDING.set(pending)
+    try:
+        yield pending
+    except BaseException:
+        _PENDING.reset(token)
+        _abandon(pending, 0)
+        raise
+    _PENDING.reset(token)
+
+
+def adopt_outputs(pending: PendingOutputs) -> None:
+    """Take the outputs a worker collected (:func:`collect_outputs`) into this process's transaction.
+
+    They are then installed, or removed, with the transaction's own outputs; outside a transaction
+    they are installed at once. Their temporary files are renamed to names of this process, so
+    that no later writer takes them for the leftovers of a finished worker (:func:`_remove_stale`).
+    """
+    renames = []
+    try:
+        for tmp, final in pending.renames:
+            own = final.with_name(f".tmp-{os.getpid()}-{secrets.token_hex(4)}-{final.name}")
+            os.rename(tmp, own)
+            renames.append((own, final))
+    except BaseException:
+        for own, _ in renames:
+            _remove(own)
+        _abandon(pending, len(renames))
+        raise
+    current = _PENDING.get()
+    if current is None:
+        for own, final in renames:
+            _install(own, final)
+        return
+    current.renames.extend(renames)
+    current.made.extend(pending.made)
+    current.flushed.extend(pending.flushed)
+
+
+def _abandon(pending: PendingOutputs, start: int) -> None:
     """Remove the temporary outputs not yet installed, the outputs flushed early and the folders
     left empty."""
     for tmp, _ in reversed(pending.renames[start:]):

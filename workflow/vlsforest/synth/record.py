@@ -42,7 +42,7 @@ import multiprocessing
 import sys
 import time
 import zlib
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +50,7 @@ import pandas as pd
 import yaml
 
 from vlsforest.errors import ConfigError, InputDataError
-from vlsforest.io.atomic import make_folder, write_csv, write_text
+from vlsforest.io.atomic import adopt_outputs, collect_outputs, make_folder, output_transaction, write_csv, write_text
 from vlsforest.io.yamlfile import read_yaml
 from vlsforest.io.las import PointCloud, write_las
 from vlsforest.domain.labels import GROUND_ID
@@ -624,6 +624,15 @@ def _synth_plot(plot, workers, out: Path, physics: dict, tls_cfg: dict, campaign
     return tt, tm
 
 
+def _synth_plot_apart(plot, workers, *args):
+    """:func:`_synth_plot` in a worker process; also returns the plot's outputs, still under their
+    temporary names, for the parent to install with the rest of the forest
+    (:func:`vlsforest.io.atomic.adopt_outputs`)."""
+    with collect_outputs() as outputs:
+        tt, tm = _synth_plot(plot, workers, *args)
+    return tt, tm, outputs
+
+
 #: forest-level truth files (``truth/``); every plot's truth folder holds a copy of the two YAML files
 FOREST_TRUTH_FILES = ("trees.csv", "recording_physics.yaml", "synth_settings.yaml")
 
@@ -654,7 +663,19 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
     -------
     dict
         Timings per plot and stage.
+
+    Notes
+    -----
+    The outputs appear together when every plot is recorded, and none when one fails or the
+    call is interrupted (:func:`vlsforest.io.atomic.output_transaction`; plots recorded side by
+    side hand their files to it, :func:`vlsforest.io.atomic.collect_outputs`).
     """
+    with output_transaction():
+        return _synthesize(cfg, out_dir, seed, physics, plots, workers, quiet, part)
+
+
+def _synthesize(cfg, out_dir, seed, physics, plots, workers, quiet, part) -> dict:
+    """The work of :func:`synthesize`, inside its transaction."""
     from vlsforest.synth.forest import forest_from_config
 
     st = synth_settings(cfg)
@@ -685,10 +706,27 @@ def synthesize(cfg: dict | None, out_dir, seed: int = 0, physics: dict | None = 
         # (whose task threads the child does not inherit) hangs in the child's first build.
         # The plots are independent (own seeds) and collected in plot order: the same bytes
         # as one after the other.
+        # Each plot's files join this call's outputs: installed together at its end, or removed
+        # together when a plot fails.
         order = sorted(range(len(layouts)), key=lambda i: -len(layouts[i].trees))  # largest first
-        with ProcessPoolExecutor(n_proc, mp_context=multiprocessing.get_context("spawn")) as pool:
-            jobs = {i: pool.submit(_synth_plot, layouts[i], workers, *args) for i in order}
-            done = [jobs[i].result() for i in range(len(layouts))]
+        jobs = {}
+        try:
+            with ProcessPoolExecutor(n_proc, mp_context=multiprocessing.get_context("spawn")) as pool:
+                try:
+                    for i in order:
+                        jobs[i] = pool.submit(_synth_plot_apart, layouts[i], workers, *args)
+                    wait(jobs.values(), return_when=FIRST_EXCEPTION)
+                finally:  # after a failure or an interrupt, start no further plot
+                    for job in jobs.values():
+                        job.cancel()
+        finally:  # the pool has ended: every plot recorded so far hands over its files
+            for i in sorted(jobs):
+                if jobs[i].done() and not jobs[i].cancelled() and jobs[i].exception() is None:
+                    adopt_outputs(jobs[i].result()[2])
+        for i in range(len(layouts)):  # the first failure in plot order (not a plot cancelled after it)
+            if not jobs[i].cancelled() and jobs[i].exception() is not None:
+                jobs[i].result()
+        done = [jobs[i].result()[:2] for i in range(len(layouts))]
     else:
         done = [_synth_plot(plot, workers, *args) for plot in layouts]
     truth = [tt for tt, _ in done]
