@@ -3,6 +3,11 @@
 ``vlsforest experiment tls-step --config-json JSON --plot P3 [--steps 0.1 0.017] [--trees N]
 [--band M] -o tls_step.json`` scans a plot's target trees at several TLS angular steps and writes the
 filled 0.02 m and 0.25 m cells per step (:func:`vlsforest.experiments.tls_step.run_tls_step`).
+``vlsforest experiment recording-detector --config-json JSON --plot P3 [--sensor uls]
+--variants-json JSON -o recording_detector.json`` records a plot with the recording physics and
+with detector variants and writes the target trees' multiple-return shares
+(:func:`vlsforest.experiments.recording_detector.run_recording_detector`).
+
 Same config and seed give the same bytes.
 """
 
@@ -35,27 +40,60 @@ def register(subparsers) -> argparse.ArgumentParser:
     t.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
     t.set_defaults(func=run)
     declare_outputs(t, output=None)
+    r = sub.add_parser("recording-detector", help="the recordings' detector and their multiple-return share",
+                       description="Record a plot again with the recording physics and with detector variants "
+                                   "and report the target trees' multiple-return shares by species group.")
+    r.add_argument("--config-json", default="{}", metavar="JSON",
+                   help="workflow config (forest, recordings blocks and seed) as JSON, as `vlsforest synth` takes it")
+    r.add_argument("--plot", required=True, help="the plot recorded")
+    r.add_argument("--sensor", choices=("als", "uls"), default="uls", help="the recording (default uls)")
+    r.add_argument("--variants-json", required=True, metavar="JSON",
+                   help='variant name → recording-physics keys, e.g. {"helios_rule": {"peak_rule": {"physical": 0}}}')
+    r.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
+    r.set_defaults(func=run)
+    declare_outputs(r, output=None)
     return p
+
+
+def _json_object(text: str, option: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{option}: not valid JSON ({exc.msg})") from None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{option}: must be a JSON object")
+    return value
+
+
+def _log(name):
+    return lambda line: print(f"experiment {name}: {line}", file=sys.stderr, flush=True)
 
 
 def run(args) -> int:
     """Execute ``vlsforest experiment`` with parsed ``args``; return 0."""
-    from vlsforest.experiments.tls_step import run_tls_step
     from vlsforest.io.atomic import write_text
 
-    try:
-        cfg = json.loads(args.config_json)
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"--config-json: not valid JSON ({exc.msg})") from None
-    if not isinstance(cfg, dict):
-        raise ConfigError("--config-json: must be a JSON object")
-    if args.trees is not None and args.trees < 1:
-        raise ConfigError(f"--trees: must be ≥ 1, got {args.trees}")
+    cfg = _json_object(args.config_json, "--config-json")
     seed = cfg.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"--config-json: seed must be an integer ≥ 0, got {seed!r}")
+    if args.experiment == "recording-detector":
+        from vlsforest.experiments.recording_detector import run_recording_detector
+
+        variants = _json_object(args.variants_json, "--variants-json")
+        res = run_recording_detector(cfg, args.plot, args.sensor, variants, seed=seed,
+                                     progress=_log("recording-detector"))
+        write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+        for v in res["variants"]:
+            print(f"vlsforest experiment recording-detector: {v['name']}: conifer {v['conifer']['mean_pct']:.1f} %, "
+                  f"broadleaf {v['broadleaf']['mean_pct']:.1f} %")
+        return 0
+    from vlsforest.experiments.tls_step import run_tls_step
+
+    if args.trees is not None and args.trees < 1:
+        raise ConfigError(f"--trees: must be ≥ 1, got {args.trees}")
     res = run_tls_step(cfg, args.plot, args.steps, seed=seed, trees=args.trees, band_m=args.band,
-                       progress=lambda line: print(f"experiment tls-step: {line}", file=sys.stderr, flush=True))
+                       progress=_log("tls-step"))
     write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
     for s in res["steps"]:
         print(f"vlsforest experiment tls-step: {s['step_deg']:g}°: {s['cells_fine']} / {s['cells_coarse']} cells, "
