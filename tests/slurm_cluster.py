@@ -73,18 +73,6 @@ def missing_requirements():
     return None
 
 
-#: the Snakemake plugins a workflow run through the cluster needs
-PLUGINS = ("snakemake_executor_plugin_slurm", "snakemake_executor_plugin_slurm_jobstep")
-
-
-def missing_plugins():
-    """Why Snakemake cannot submit to SLURM here (a skip reason), or None when it can."""
-    import importlib.util
-
-    absent = [m for m in PLUGINS if importlib.util.find_spec(m) is None]
-    return f"Snakemake plugin(s) not installed: {', '.join(absent)}" if absent else None
-
-
 class ClusterError(RuntimeError):
     """The cluster did not come up; the message carries the daemons' log tails."""
 

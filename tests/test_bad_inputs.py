@@ -588,6 +588,7 @@ def test_scene_helios_with_a_bad_part_writes_nothing(ws, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ the workflow config
+@pytest.mark.e2e  # Snakemake runs
 @pytest.mark.parametrize("edit, key", [
     ({"scenarios": {"als": {"extraction_radius_m": -1}}}, "scenarios.als.extraction_radius_m"),
     ({"segment": {"stem_bridges": 3}}, "segment"),

@@ -6,6 +6,9 @@ with the study's 0.5 m / 0.3 m radii, Table 4 metrics: ≈ 20 min on 2 cores) an
 ULS − ALS has the signs of the real Bretten comparison (1,016 trees): ULS height above ALS,
 ULS crown base lower, ULS crown projection area smaller, in the mean and in the median.
 
+Marked ``slow`` (left out of CI): ``bash scripts/run-slow-tests.sh`` runs these tests and records
+each one's outcome and seconds in ``benchmarks/results/slow_tests.jsonl``.
+
 Set ``VLSFOREST_DEFAULT_RESULTS`` to a working directory where the default config already ran
 (at least up to ``results/{plot}/reference/{als,uls}/metrics.csv``) to check those files
 instead of building them. The segmentation test reads the same run's ``results/{plot}/segment``

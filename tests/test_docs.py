@@ -217,6 +217,7 @@ def _params():
                            marks=[pytest.mark.slow] if slow else [])
 
 
+@pytest.mark.e2e  # the documentation's commands run in a shell, as a reader runs them
 @pytest.mark.parametrize("page", list(_params()))
 def test_documented_commands_run_as_written(page, tmp_path):
     _run_page(page, tmp_path)

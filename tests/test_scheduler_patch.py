@@ -100,6 +100,7 @@ def test_one_pending_timer_and_no_lost_wakeup(monkeypatch):
     assert s._vlsforest_reevaluation.daemon
 
 
+@pytest.mark.e2e  # Snakemake dry runs
 @pytest.mark.parametrize("value, applied", [(None, False), ("1", True)])
 def test_the_workflow_applies_it_only_when_asked(tmp_path, value, applied):
     """A copy of the repository whose Snakefile reports, after the workflow is parsed, whether

@@ -42,3 +42,14 @@ def test_physical_detector_sensitivity_scenarios_validate_beside_the_study():
             # the same survey as its study twin, the detector aside
             assert {k: v for k, v in sc.items() if k != "detector"} == \
                 {k: v for k, v in twin.items() if k != "detector"}
+
+
+def test_the_tests_quick_forest_settings_are_the_quick_study_s():
+    """tests/conftest.py's QUICK_SYNTH (the settings the tests record the quick forest with,
+    seed 0) are those of config/quick.yaml, so that such a recording is the quick study's forest."""
+    from conftest import QUICK_SYNTH
+
+    quick = _load("quick.yaml")
+    assert quick["seed"] == 0
+    # the blocks the workflow's synthesis reads besides the seed (workflow/rules/common.smk)
+    assert {key: quick[key] for key in ("forest", "tls", "recordings") if key in quick} == QUICK_SYNTH

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from conftest import QUICK_SYNTH
 
 from vlsforest.cli import main
 from vlsforest.errors import ConfigError, InputDataError
@@ -17,7 +18,8 @@ from vlsforest.sim import Scene, simulate
 from vlsforest.sim.survey import survey_from_dict
 from vlsforest.synth import record as R
 
-# the quick forest, recorded coarsely (test speed); the recording physics stays the default one
+# the quick forest, recorded coarsely (the synthesis tests' own runs); the recording physics stays
+# the default one
 SMALL = {"forest": {"preset": "quick"},
          "tls": {"n_positions": 3, "step_deg": 0.4, "n_tilted": 0},
          "recordings": {"uls": {"repeats": 1, "cross_margin_m": 0.0}}}
@@ -37,14 +39,15 @@ def _run(tmp_path, name, cfg=SMALL, seed=0, physics=None):
 
 
 @pytest.fixture(scope="module")
-def forest(tmp_path_factory):
-    return _run(tmp_path_factory.mktemp("synth"), "forest")
+def forest(quick_forest):
+    """The quick study's recorded forest (tests/conftest.py: built once per test run)."""
+    return quick_forest
 
 
 def test_output_layout(forest):
     p = forest / "plots" / "Q1"
     scans = pd.read_csv(p / "tls" / "scans.csv")
-    assert len(scans) == 3
+    assert len(scans) == QUICK_SYNTH["tls"]["n_positions"]
     for k in scans.scan_id:
         assert (p / "tls" / f"scan_{k}.laz").is_file()
     for f in ("als.laz", "uls.laz", "trajectory_als.csv", "trajectory_uls.csv", "plot.json"):
@@ -111,6 +114,7 @@ def test_species_multi_return_contrast_and_als_uls_signs(forest):
     assert d["cbh"].mean() < 0
 
 
+@pytest.mark.e2e  # three recordings of the quick forest through the command line
 def test_same_seed_same_bytes_other_seed_other_forest(tmp_path):
     tiny = copy.deepcopy(SMALL)
     tiny["tls"].update(n_positions=1, step_deg=1.0)
@@ -278,6 +282,7 @@ def test_tls_positions_keep_plant_surfaces_out_of_the_minimum_range():
         R.synth_settings({"forest": {"preset": "default"}, "tls": {"head_clearance_m": -1}})
 
 
+@pytest.mark.e2e  # a two-plot forest recorded three ways
 def test_plots_recorded_side_by_side_give_the_same_bytes(tmp_path):
     """With two workers and two plots, the plots are recorded two at a time (each with both
     workers); the folder must be byte-identical to recording them one after the other."""

@@ -196,6 +196,7 @@ def touched(tmp_path_factory):
     return workdir
 
 
+@pytest.mark.e2e  # Snakemake runs
 @pytest.mark.parametrize("edited", sorted(SNAKEMAKE_EDITS))
 def test_snakemake_reruns_exactly_the_rules_importing_an_edited_module(touched, tmp_path, edited):
     copy = tmp_path / "repo"
@@ -216,6 +217,7 @@ def test_snakemake_reruns_exactly_the_rules_importing_an_edited_module(touched, 
 # ---------------------------------------------------------------------------------------------
 # the job environment
 # ---------------------------------------------------------------------------------------------
+@pytest.mark.e2e  # Snakemake dry runs
 @pytest.mark.parametrize("conda", [False, True])
 def test_only_conda_deployment_puts_the_source_tree_on_the_job_paths(tmp_path, conda):
     """Jobs call the installed `vlsforest`: PATH and PYTHONPATH stay as they are, except with
