@@ -44,6 +44,7 @@ def test_run_rejects_bad_arguments():
         tls_step.run_tls_step({"forest": {"preset": "quick"}}, "nope", [0.5])
 
 
+@pytest.mark.e2e
 def test_finer_step_fills_more_fine_cells(tmp_path):
     """On the quick forest: a finer step fills more 0.02 m cells per filled 0.25 m cell; the CLI
     writes the same bytes twice."""
@@ -73,3 +74,32 @@ def test_cli_bad_config_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("vlsforest experiment: error: --config-json") and "\n" not in err
     assert not (tmp_path / "x.json").exists()
+
+
+@pytest.mark.e2e
+def test_recording_detector_helios_rule_drops_isolated_echoes():
+    """On the quick forest's ULS (one grid): HELIOS++ 1.0.8's peak rule, which also requires the
+    window's neighbours above the threshold, records fewer multi-return pulses than the physical
+    detector, and a 4× threshold fewer too; the recording row comes first."""
+    from vlsforest.experiments.recording_detector import run_recording_detector
+
+    cfg = {"forest": {"preset": "quick"}, "recordings": {"uls": {"cross_margin_m": 30, "repeats": 1}}}
+    res = run_recording_detector(cfg, "Q1", "uls", {"helios": {"peak_rule": {"physical": 0}},
+                                                    "x4": {"detection_threshold": {"min_energy": 40000}}})
+    rows = {r["name"]: r for r in res["variants"]}
+    assert [r["name"] for r in res["variants"]] == ["recording", "helios", "x4"]
+    for g in ("conifer", "broadleaf"):
+        assert rows["recording"][g]["n"] == 2
+        assert rows["helios"][g]["mean_pct"] < rows["recording"][g]["mean_pct"]
+        assert rows["x4"][g]["mean_pct"] < rows["recording"][g]["mean_pct"]
+
+
+def test_recording_detector_rejects_bad_variants():
+    from vlsforest.experiments.recording_detector import run_recording_detector
+
+    with pytest.raises(ConfigError, match="sensor"):
+        run_recording_detector({}, "Q1", "tls", {})
+    with pytest.raises(ConfigError, match="variants"):
+        run_recording_detector({"forest": {"preset": "quick"}}, "Q1", "uls", {"recording": {}})
+    with pytest.raises(ConfigError, match="unknown physics candidate"):
+        run_recording_detector({"forest": {"preset": "quick"}}, "Q1", "uls", {"v": {"nonsense": {}}})

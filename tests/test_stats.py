@@ -401,6 +401,16 @@ def test_d1_compares_the_references_with_the_studys_real_shares():
     m.loc[ref & (m["scenario"] == "uls"), "multi_return_pct"] += 10.0
     f, _ = _findings(m, vc, tt)
     assert f["D1"]["verdict"] == "disagrees"
+    assert "not established" in f["D1"]["cause"] and "not run" in f["D1"]["experiment"]
+    # the detector experiment spans the study's ULS shares (33.1, 28.1 %): the cause is named
+    rows = [{"name": "recording", "conifer": {"mean_pct": 60.0}, "broadleaf": {"mean_pct": 50.0}},
+            {"name": "strict", "conifer": {"mean_pct": 20.0}, "broadleaf": {"mean_pct": 15.0}}]
+    f, _ = _findings(m, vc, tt, experiments={"recording_detector": {"sensor": "uls", "plot": "P3", "variants": rows}})
+    assert f["D1"]["cause"].startswith("the recordings' detector")
+    assert "strict: conifer 20.0 %, broadleaf 15.0 %" in f["D1"]["experiment"]
+    rows[1]["broadleaf"]["mean_pct"] = 40.0  # no variant reaches 28.1 % for broadleaf
+    f, _ = _findings(m, vc, tt, experiments={"recording_detector": {"sensor": "uls", "plot": "P3", "variants": rows}})
+    assert f["D1"]["cause"].startswith("not established")
 
 
 def test_f2_quotes_the_tls_step_experiment():

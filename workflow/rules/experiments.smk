@@ -28,3 +28,26 @@ rule experiment_tls_step:
     shell:
         "vlsforest experiment tls-step --config-json {params.settings:q} --plot {params.plot} "
         "--steps {params.steps} {params.trees} {params.band} -o {output} > {log} 2>&1"
+
+
+rule experiment_recording_detector:
+    output:
+        "results/experiments/recording_detector.json",
+    log:
+        "logs/experiments/recording_detector.log",
+    benchmark:
+        "logs/benchmarks/experiments/recording_detector.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=8000,
+        runtime=60,
+    params:
+        settings=synth_param,
+        plot=lambda wildcards: experiment_setting("recording_detector", "plot", (virtual_plots() or [""])[0]),
+        sensor=lambda wildcards: experiment_setting("recording_detector", "sensor", "uls"),
+        variants=lambda wildcards: json.dumps(experiment_setting("recording_detector", "variants", {}), sort_keys=True),
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment recording-detector --config-json {params.settings:q} --plot {params.plot} "
+        "--sensor {params.sensor} --variants-json {params.variants:q} -o {output} > {log} 2>&1"
