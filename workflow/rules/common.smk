@@ -365,8 +365,10 @@ def scenario_radius(wildcards):
 
 
 def scenario_param(wildcards):
-    """The scenario's config block (tracked as a param)."""
-    return json.dumps(config["scenarios"][wildcards.scenario], sort_keys=True)
+    """The scenario's config block (tracked as a param) for `vlsforest plan`, without `platform`
+    (the part the scenario plays in the findings, which the flight does not use)."""
+    block = {k: v for k, v in config["scenarios"][wildcards.scenario].items() if k != "platform"}
+    return json.dumps(block, sort_keys=True)
 
 
 def scenario_seed(wildcards):
