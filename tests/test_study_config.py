@@ -53,3 +53,21 @@ def test_the_tests_quick_forest_settings_are_the_quick_study_s():
     assert quick["seed"] == 0
     # the blocks the workflow's synthesis reads besides the seed (workflow/rules/common.smk)
     assert {key: quick[key] for key in ("forest", "tls", "recordings") if key in quick} == QUICK_SYNTH
+
+
+def test_the_default_config_plays_every_part_of_the_study():
+    """Every method of config.yaml is one of the study's, both scenarios play its surveys, and the
+    experiments scan a plot of the config."""
+    from vlsforest.stats import StudyRoles
+
+    cfg = _load("config.yaml")
+    roles = StudyRoles.from_config(cfg["methods"], cfg["scenarios"])
+    assert all(r.study for r in roles.methods) and len(roles.methods) == 7
+    assert dict(roles.platforms) == {"als": "als", "uls": "uls"}
+    for size in (0.25, 0.10, 0.05, 0.02):
+        assert roles.method("fixed", size) is not None
+    for shift in ("none", "random", "cog"):
+        assert roles.method("scaled", shift=shift) is not None
+    for name, block in cfg["experiments"].items():
+        assert block["enabled"] and block["plot"] in cfg["plots"], name
+    jsonschema.validate(cfg, yaml.safe_load((ROOT / "config" / "schema.yaml").read_text()))
