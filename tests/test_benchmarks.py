@@ -77,3 +77,27 @@ def test_study_benchmark_sums_the_rules_benchmark_files(tmp_path):
     assert table["simulate"] == {"jobs": 2, "cpu_s": 28.5, "wall_s": 30.0, "max_rss_mb": 800.0}
     assert table["synth"] == {"jobs": 0, "cpu_s": 0.0, "wall_s": 0.0, "max_rss_mb": 0.0}
     assert bench_study.rule_table(tmp_path / "none") == {}
+
+
+def test_compare_runs_finds_changed_and_one_sided_files(tmp_path):
+    spec = importlib.util.spec_from_file_location("compare_runs", REPO / "validation" / "compare_runs.py")
+    cr = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cr)
+    for side, extra in (("a", b"1"), ("b", b"2")):
+        (tmp_path / side / "P1" / "m" / "als").mkdir(parents=True)
+        (tmp_path / side / "P1" / "m" / "als" / "sim.laz").write_bytes(b"same")
+        (tmp_path / side / "P1" / "m" / "als" / "timing.json").write_bytes(extra)
+        (tmp_path / side / "summary").mkdir()
+        (tmp_path / side / "summary" / "findings.md").write_bytes(extra)
+    (tmp_path / "b" / "new.csv").write_bytes(b"x")
+    res = cr.compare(tmp_path / "a", tmp_path / "b", skip=cr.TIMING_FILES)
+    assert res["compared"] == 2 and res["equal"] == 1
+    assert res["different"] == ["summary/findings.md"] and res["only_b"] == ["new.csv"]
+    assert res["skipped"] == ["P1/m/als/timing.json"]
+    res = cr.compare(tmp_path / "a", tmp_path / "b", skip=cr.TIMING_FILES, expect=["summary/*"])
+    assert res["different"] == [] and res["expected_different"] == ["summary/findings.md"]
+    out = tmp_path / "rows.jsonl"
+    assert cr.main([str(tmp_path / "a"), str(tmp_path / "b"), "--expect-changed", "summary/*", "--out", str(out)]) == 0
+    assert cr.main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]) == 1
+    assert len(out.read_text().splitlines()) == 2
+    assert cr.main([str(tmp_path / "nope"), str(tmp_path / "b"), "--out", str(out)]) == 2
