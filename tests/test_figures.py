@@ -221,7 +221,7 @@ def test_side_view_selection_from_the_given_clouds(tmp_path):
     m.loc[(m["method"] == "reference") & (m["tree_id"] == "3") & (m["scenario"] == "uls"), "n_points"] = 500.0
     m.loc[(m["method"] == "reference") & (m["tree_id"] == "3") & (m["scenario"] == "uls"), "hmin"] = 2.0
     plot = m.loc[m["tree_id"] == "3", "plot"].iloc[0]
-    clouds = {(plot, me, "uls"): tmp_path / plot / me / "uls" / "trees.laz" for me in ("reference", "fixed_0.25", "scaled")}
+    clouds = {(plot, me, "uls"): tmp_path / plot / me / "uls" / "trees.laz" for me in ("scaled", "fixed_0.25", "reference")}
     assert F.side_view_selection(m, clouds) is None  # the files do not exist yet
     rng = np.random.default_rng(2)
     for me in ("reference", "fixed_0.25", "scaled"):

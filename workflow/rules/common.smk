@@ -240,9 +240,17 @@ def timing_files():
     )
 
 
+def side_view_methods():
+    """The methods figure 13 shows: the first unshifted scaled method and the coarsest fixed one."""
+    ms = config["methods"]
+    scaled = [m for m in METHODS if ms[m].get("kind") == "scaled" and ms[m].get("shift", "none") == "none"]
+    fixed = sorted((m for m in METHODS if ms[m].get("kind") == "fixed"), key=lambda m: -float(ms[m]["voxel_size"]))
+    return scaled[:1] + fixed[:1]
+
+
 def side_view_clouds():
-    """Tree clouds figure 13 reads (scaled vs fixed 0.25 m and the reference), where configured."""
-    sources = [m for m in ("scaled", "fixed_0.25") if m in METHODS] + ["reference"]
+    """Tree clouds figure 13 reads (scaled vs the coarsest fixed voxels, and the reference)."""
+    sources = side_view_methods() + ["reference"]
     return expand("results/{plot}/{source}/{scenario}/trees.laz", plot=PLOTS, source=sources, scenario=SCENARIOS)
 
 

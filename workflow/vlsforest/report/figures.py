@@ -142,7 +142,8 @@ def _errors_of(errors, metric, column="error"):
 
 
 def _short(m: str) -> str:
-    return {"scaled_random_shift": "scaled+rand", "scaled_cog_shift": "scaled+CoG"}.get(m, m)
+    """A method's name for crowded axes: without a trailing ``_shift``."""
+    return m.removesuffix("_shift")
 
 
 def _kde_outline(v: np.ndarray, n_grid: int = 64):
@@ -500,8 +501,8 @@ def fig_voxels_vs_error(errors: pd.DataFrame, voxel_counts: pd.DataFrame, out,
         return _save(fig, out)
 
 
-def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=("scaled", "fixed_0.25"),
-                        scenario: str = "uls", tree_field: str = "tree_id"):
+def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=None, scenario: str | None = None,
+                        tree_field: str = "tree_id"):
     """Pick the tree and clouds of figure 13 from the tree clouds given.
 
     The tree is the one with the most reference points in ``scenario`` (ties: first plot and
@@ -517,6 +518,10 @@ def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=("sca
     clouds : mapping
         ``(plot, source, scenario)`` → path of that source's tree cloud (LAS/LAZ with the field
         ``tree_field``); ``source`` is a method or ``reference``. Only these files are read.
+    methods : sequence of str, optional
+        The methods to show (default: the non-reference sources of ``clouds``, in their order).
+    scenario : str, optional
+        The scenario (default: the last scenario of ``clouds``).
 
     Returns
     -------
@@ -527,6 +532,11 @@ def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=("sca
     """
     from vlsforest.io.las import read_las
 
+    if methods is None:
+        methods = list(dict.fromkeys(k[1] for k in clouds if k[1] != REFERENCE))
+    if scenario is None:
+        scens = list(dict.fromkeys(k[2] for k in clouds))
+        scenario = scens[-1] if scens else ""
     df = prepare_metrics(metrics, "tree metrics")
     if scenario not in set(df["scenario"]):
         scenario = scenario_order(df["scenario"], pd.unique(df["scenario"]))[-1]
