@@ -9,13 +9,18 @@ replaces what stands between the README's markers::
     …
     <!-- findings-table:end -->
 
+With ``--figure PNG`` it also copies a figure of the same run into ``docs/images/`` (the
+README's picture of what the main run produces).
+
 Usage::
 
     python scripts/findings-table.py [--findings results/summary/stats/findings.md]
                                      [--readme README.md] [--config config/config.yaml]
+                                     [--figure results/summary/figures/fig07_percentile_curves.png]
                                      [--check]
 
-``--check`` changes nothing and exits 1 when the README's table differs from the findings file.
+``--check`` changes nothing and exits 1 when the README's table (or the copied figure) differs
+from the run's files.
 Errors end in one line ``findings-table: error: …`` and exit code 2.
 """
 
@@ -100,8 +105,24 @@ def main(argv=None) -> int:
     ap.add_argument("--readme", type=Path, default=ROOT / "README.md")
     ap.add_argument("--config", default="config/config.yaml",
                     help="the configuration of the run, named in the table's caption")
+    ap.add_argument("--figure", type=Path, help="a figure of the run, copied into docs/images/")
+    ap.add_argument("--images", type=Path, default=ROOT / "docs" / "images", help="where --figure goes")
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 when out of date")
     args = ap.parse_args(argv)
+    if args.figure is not None:
+        if not args.figure.is_file():
+            print(f"findings-table: error: {args.figure} not found: run the study first", file=sys.stderr)
+            return 2
+        target = args.images / args.figure.name
+        data = args.figure.read_bytes()
+        if args.check:
+            if not target.is_file() or target.read_bytes() != data:
+                print(f"findings-table: {target} is not up to date with {args.figure}", file=sys.stderr)
+                return 1
+        elif not target.is_file() or target.read_bytes() != data:
+            args.images.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+            print(f"findings-table: updated {target}")
     try:
         if not args.findings.is_file():
             raise FindingsError(f"{args.findings} not found: run the study first "

@@ -160,6 +160,15 @@ def test_findings_table_is_generated_from_a_findings_file(tmp_path):
     assert "1 agree, 1 disagree, 0 not testable." in text
     assert ft.main(["--findings", str(src), "--readme", str(readme), "--check"]) == 0
     assert ft.main(["--findings", str(tmp_path / "missing.md"), "--readme", str(readme)]) == 2
+    png = tmp_path / "fig.png"
+    png.write_bytes(b"\x89PNG one")
+    images = tmp_path / "images"
+    common = ["--findings", str(src), "--readme", str(readme), "--images", str(images)]
+    assert ft.main([*common, "--figure", str(png), "--check"]) == 1
+    assert ft.main([*common, "--figure", str(png)]) == 0
+    assert (images / "fig.png").read_bytes() == png.read_bytes()
+    assert ft.main([*common, "--figure", str(png), "--check"]) == 0
+    assert ft.main([*common, "--figure", str(tmp_path / "none.png")]) == 2
     assert len(text.splitlines()) <= 300 + 20  # the real table adds about 15 rows
 
 
