@@ -10,6 +10,8 @@ the benchmark's ``main``, shows its output as usual and appends one row to
 - ``results``: the values the benchmark passed to :func:`record` (seconds, rates, peak memory …);
 - ``output``: the lines it printed.
 
+A run that ends with exit code 2 (a usage error: bad arguments, missing input) appends no row.
+
 Standard library only, so that it adds nothing to what a benchmark imports.
 """
 
@@ -30,6 +32,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 #: where rows go unless VLSFOREST_BENCH_RESULTS names another folder
 RESULTS_DIR = REPO / "benchmarks" / "results"
+
+#: the exit code of a usage error (argparse's, and bad input named in one line): no row is written
+USAGE_ERROR = 2
 
 _current: contextvars.ContextVar[dict | None] = contextvars.ContextVar("benchmark_results", default=None)
 
@@ -108,7 +113,8 @@ def run(name: str, main, argv: list[str] | None = None, results_dir: Path | str 
     Returns
     -------
     int
-        The benchmark's exit code (a ``SystemExit`` it raised counts as its code).
+        The benchmark's exit code (a ``SystemExit`` it raised counts as its code); with
+        :data:`USAGE_ERROR` no row is appended.
     """
     argv = sys.argv[1:] if argv is None else list(argv)
     folder = Path(results_dir or os.environ.get("VLSFOREST_BENCH_RESULTS") or RESULTS_DIR)
@@ -131,6 +137,8 @@ def run(name: str, main, argv: list[str] | None = None, results_dir: Path | str 
         _current.reset(token)
     row.update(exit_code=int(rc or 0), seconds=round(time.perf_counter() - t0, 3), results=results,
                output=tee.copy.getvalue().splitlines())
+    if row["exit_code"] == USAGE_ERROR:
+        return USAGE_ERROR
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.jsonl"
     with path.open("a") as fh:

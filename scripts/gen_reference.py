@@ -4,7 +4,8 @@
   option, with its help text, default and choices);
 * ``config.md`` from ``config/schema.yaml`` (every key with its type, default and description);
 * ``benchmark-results.md`` from the machine-readable result files under ``benchmarks/results/``
-  (CSV, JSON and JSON Lines), rendered as tables exactly as recorded.
+  (CSV, JSON and JSON Lines), rendered as tables exactly as recorded; a JSON Lines row whose
+  ``results`` hold a ``table`` (a list of flat records) gives one table row per record.
 
 Usage: ``python scripts/gen_reference.py OUT_DIR`` (``scripts/build-docs.sh`` writes into
 ``docs/reference/``). The functions :func:`cli_reference`, :func:`config_reference` and
@@ -318,13 +319,29 @@ def _table(rows: list[dict]) -> list[str]:
     return out
 
 
+def _expand_table(row) -> list[dict]:
+    """A benchmark row whose ``results`` hold a ``table`` (a list of flat records) as one row per
+    record, each led by the run's date, commit and machine; any other row as it is."""
+    results = row.get("results") if isinstance(row, dict) else None
+    table = results.get("table") if isinstance(results, dict) else None
+    if not (isinstance(table, list) and table and all(isinstance(r, dict) for r in table)):
+        return [row]
+    machine = row.get("machine") if isinstance(row.get("machine"), dict) else {}
+    lead = {"date": row.get("date"), "commit": row.get("commit"), "host": machine.get("host"),
+            "cpus": machine.get("cpus")}
+    return [{**lead, **r} for r in table]
+
+
 def _read_results(path: Path) -> list[dict]:
     if path.suffix == ".csv":
         with path.open(newline="", encoding="utf-8") as fh:
             return list(csv.DictReader(fh))
     if path.suffix == ".jsonl":
-        return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()
-                if line.strip()]
+        rows = []
+        for line in path.read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                rows += _expand_table(json.loads(line))
+        return rows
     data = json.loads(path.read_text(encoding="utf-8"))
     if isinstance(data, list):
         return [d if isinstance(d, dict) else {"value": d} for d in data]
