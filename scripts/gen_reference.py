@@ -5,7 +5,9 @@
 * ``config.md`` from ``config/schema.yaml`` (every key with its type, default and description);
 * ``benchmark-results.md`` from the machine-readable result files under ``benchmarks/results/``
   (CSV, JSON and JSON Lines), rendered as tables exactly as recorded; a JSON Lines row whose
-  ``results`` hold a ``table`` (a list of flat records) gives one table row per record.
+  ``results`` hold a ``table`` (a list of flat records) gives one table row per record, and a
+  record whose ``results`` hold ``tables`` (title → list of rows) gets those as tables of their
+  own (the latest such record of each file).
 
 Usage: ``python scripts/gen_reference.py OUT_DIR`` (``scripts/build-docs.sh`` writes into
 ``docs/reference/``). The functions :func:`cli_reference`, :func:`config_reference` and
@@ -373,8 +375,30 @@ def benchmark_results(results_dir=None) -> str:
             continue
         out += [f"## `{path.name}`", "", f"{len(rows)} record(s).", ""]
         if rows:
-            out += _table(rows) + [""]
+            tables = _summary_tables(rows)
+            out += _table([_without_tables(r) for r in rows]) + [""]
+            for title, table in tables.items():
+                out += [f"### {path.stem}: {title}", "", "The latest record's summary.", ""]
+                out += _table(table) + [""]
     return "\n".join(out)
+
+
+def _summary_tables(rows: list[dict]) -> dict:
+    """The summary tables of the latest record that has any: its ``results.tables``, a mapping
+    of title → list of rows (dicts); empty when no record has one."""
+    for row in reversed(rows):
+        tables = row.get("results", {}).get("tables") if isinstance(row.get("results"), dict) else None
+        if isinstance(tables, dict):
+            return {str(k): v for k, v in tables.items()
+                    if isinstance(v, list) and v and all(isinstance(r, dict) for r in v)}
+    return {}
+
+
+def _without_tables(row: dict) -> dict:
+    """A record without its summary tables (they get tables of their own)."""
+    if isinstance(row.get("results"), dict) and "tables" in row["results"]:
+        row = dict(row, results={k: v for k, v in row["results"].items() if k != "tables"})
+    return row
 
 
 # --------------------------------------------------------------------------- driver

@@ -8,6 +8,8 @@ import re
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 BENCHMARKS = REPO / "benchmarks"
 
@@ -101,3 +103,36 @@ def test_compare_runs_finds_changed_and_one_sided_files(tmp_path):
     assert cr.main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)]) == 1
     assert len(out.read_text().splitlines()) == 2
     assert cr.main([str(tmp_path / "nope"), str(tmp_path / "b"), "--out", str(out)]) == 2
+
+def _bench_memory_floor():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_memory_floor
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return bench_memory_floor
+
+
+def test_memory_floor_fits_bytes_per_element_by_least_squares():
+    fit = _bench_memory_floor().fit_per_element
+    # 1000 B each on top of 5 MB, exactly
+    slope, icpt = fit([100, 200, 400], [5e6 + 1e5, 5e6 + 2e5, 5e6 + 4e5])
+    assert slope == pytest.approx(1000.0) and icpt == pytest.approx(5e6)
+    # by hand: mean n 2, mean y 4; Sxy = (-1)(-3) + 0(1) + 1(2) = 5, Sxx = 2 → 2.5 each, 4 − 5 = −1 at 0
+    slope, icpt = fit([1, 2, 3], [1.0, 5.0, 6.0])
+    assert slope == pytest.approx(2.5) and icpt == pytest.approx(-1.0)
+    with pytest.raises(ValueError):
+        fit([5, 5], [1.0, 2.0])
+    with pytest.raises(ValueError):
+        fit([1, 2], [1.0])
+
+
+def test_memory_floor_reads_the_kb_fields_of_proc_files():
+    text = ("Name:\tpython\nVmHWM:\t  412344 kB\nVmRSS:\t  400000 kB\nThreads:\t3\n"
+            "Rss:                1616 kB\nPss:                 224 kB\n")
+    assert _bench_memory_floor().status_kb(text) == {"VmHWM": 412344, "VmRSS": 400000, "Rss": 1616, "Pss": 224}
+
+
+def test_memory_floor_names_the_third_party_packages_of_a_module_list():
+    names = ["numpy", "numpy.linalg", "json", "_ctypes", "vlsforest.sim", "laspy.copc", "yaml", "os.path"]
+    assert _bench_memory_floor().third_party(names, stdlib={"json", "os"}) == ["laspy", "numpy", "yaml"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import re
 import subprocess
@@ -134,6 +135,21 @@ def test_benchmark_results_are_rendered_from_the_files(gen, tmp_path):
     assert "## `b.jsonl`" in text and "| null | 2.25 |" in text and "| x | 3 |" in text
     assert "## `c.json`" in text and "| m | 2 |" in text
     assert "No result files" in gen.benchmark_results(tmp_path / "none")
+
+
+def test_a_records_summary_tables_get_tables_of_their_own(gen, tmp_path):
+    old = {"benchmark": "bench_toy", "results": {"n": 1, "tables": {"costs": [{"part": "old", "mb": 9}]}}}
+    new = {"benchmark": "bench_toy", "results": {"n": 2, "tables": {"costs": [{"part": "imports", "mb": 142.5},
+                                                                              {"part": "kernels", "mb": 83}]}}}
+    plain = {"benchmark": "bench_toy", "results": {"n": 3}}
+    (tmp_path / "bench_toy.jsonl").write_text("\n".join(json.dumps(r) for r in (old, new, plain)) + "\n")
+    text = gen.benchmark_results(tmp_path)
+    assert "3 record(s)." in text
+    assert '| bench_toy | {"n": 2} |' in text  # the tables leave the record's cell
+    # the latest record that has tables, not the last record
+    assert "### bench_toy: costs" in text and text.count("### ") == 1
+    assert "| part | mb |" in text and "| imports | 142.5 |" in text and "| kernels | 83 |" in text
+    assert "| old | 9 |" not in text
 
 
 # --------------------------------------------------------------------------- findings table
