@@ -9,7 +9,7 @@ records one row in ``benchmarks/results/bench_study.jsonl`` (:mod:`benchresult`)
 - ``jobs``: the jobs Snakemake ran (from its summary line);
 - ``rules``: per rule that declares a ``benchmark:`` file, the number of jobs, their summed
   ``cpu_time`` and wall ``s`` and the largest ``max_rss`` (MB), read from
-  ``logs/benchmarks/<rule folder>/*.tsv``; the CPU seconds outside those rules (Snakemake
+  ``logs/benchmarks/<rule folder>/*.tsv`` (or a single ``logs/benchmarks/<name>.tsv``); the CPU seconds outside those rules (Snakemake
   itself and the small jobs) follow as ``cpu_s_outside_benchmarked_rules``.
 
 Usage::
@@ -38,12 +38,19 @@ from pathlib import Path
 import benchresult
 
 def rule_table(bench_dir: Path) -> dict:
-    """Per folder of Snakemake benchmark files: jobs, summed cpu_time and s, largest max_rss (MB)."""
+    """Per folder of Snakemake benchmark files (and per single file beside them): jobs, summed
+    cpu_time and s, largest max_rss (MB)."""
     out = {}
-    for folder in sorted(p for p in bench_dir.iterdir() if p.is_dir()) if bench_dir.is_dir() else []:
+    groups = {}
+    for p in sorted(bench_dir.iterdir()) if bench_dir.is_dir() else []:
+        if p.is_dir():
+            groups[p.name] = sorted(p.rglob("*.tsv"))
+        elif p.suffix == ".tsv":  # a rule's single benchmark file, e.g. diagnose_uls.tsv
+            groups[p.stem] = [p]
+    for name, files in groups.items():
         jobs = cpu = wall = 0.0
         rss = 0.0
-        for tsv in sorted(folder.rglob("*.tsv")):
+        for tsv in files:
             with open(tsv, newline="") as fh:
                 rows = list(csv.DictReader(fh, delimiter="\t"))
             if not rows:
@@ -56,7 +63,7 @@ def rule_table(bench_dir: Path) -> dict:
                 rss = max(rss, float(r.get("max_rss") or 0.0))
             except ValueError:
                 pass
-        out[folder.name] = {"jobs": int(jobs), "cpu_s": round(cpu, 1), "wall_s": round(wall, 1),
+        out[name] = {"jobs": int(jobs), "cpu_s": round(cpu, 1), "wall_s": round(wall, 1),
                             "max_rss_mb": round(rss, 1)}
     return out
 

@@ -75,8 +75,10 @@ def test_study_benchmark_sums_the_rules_benchmark_files(tmp_path):
     (tmp_path / "simulate" / "P2_a_als.tsv").write_text(head + "20.0\t0:00:20\t800.0\t1\t1\t1\t0\t0\t90\t19.0\n")
     (tmp_path / "synth").mkdir()
     (tmp_path / "synth" / "P1.tsv").write_text(head)  # a job without a row yet
+    (tmp_path / "diagnose_uls.tsv").write_text(head + "100.0\t0:01:40\t9000.0\t1\t1\t1\t0\t0\t90\t95.0\n")
     table = bench_study.rule_table(tmp_path)
     assert table["simulate"] == {"jobs": 2, "cpu_s": 28.5, "wall_s": 30.0, "max_rss_mb": 800.0}
+    assert table["diagnose_uls"] == {"jobs": 1, "cpu_s": 95.0, "wall_s": 100.0, "max_rss_mb": 9000.0}
     assert table["synth"] == {"jobs": 0, "cpu_s": 0.0, "wall_s": 0.0, "max_rss_mb": 0.0}
     assert bench_study.rule_table(tmp_path / "none") == {}
 
