@@ -421,6 +421,9 @@ def test_f2_quotes_the_tls_step_experiment():
         {"step_deg": 0.1, "ratio": 9.0}, {"step_deg": 0.017, "ratio": 41.5}]}}
     f, _ = _findings(m, vc, tt, experiments=exp)
     assert "0.1°: 9.0×" in f["F2"]["experiment"] and "0.017°: 41.5×" in f["F2"]["experiment"]
+    # 41.5 / 9.0 = 4.6× growth; the run's 20× would be 92×
+    assert "4.6× more fine cells per coarse cell at 0.017°" in f["F2"]["experiment"]
+    assert "the run's 20.0× would be 92×" in f["F2"]["experiment"]
 
 
 def test_roles_reject_bad_blocks():

@@ -264,7 +264,7 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
             ev.append(f"voxels on {len(ps)} plot(s): 0.02 m {nf:.0f}, scaled {ns:.0f}: ratio {ratio:.1f}× "
                       f"(study ≈ {cl.VOXEL_RATIO:.0f}×; tolerated {cl.VOXEL_RATIO / f:.0f}–{cl.VOXEL_RATIO * f:.0f}×)")
     if ratio_ok is False:
-        cause, experiment = _tls_step_cause(experiments.get("tls_step"))
+        cause, experiment = _tls_step_cause(experiments.get("tls_step"), ratio)
     out.append(_row("F2", "Scaled voxels are as accurate (CBH, CPA) as 0.02 m fixed voxels with ≈ 50× fewer "
                           "voxels.", ok, ev, _tolerance_text(*tols), cause, experiment))
 
@@ -398,15 +398,30 @@ def _recording_cause() -> tuple[str, str]:
             "'against the study's real data')")
 
 
-def _tls_step_cause(result) -> tuple[str, str]:
+def _tls_step_cause(result, run_ratio: float | None = None) -> tuple[str, str]:
+    """Cause and experiment of a voxel-ratio disagreement from the TLS angular-step experiment.
+
+    The experiment's ratio at its coarsest and finest step gives a growth factor; where the run's
+    own ratio is given, the text also says what it would become if the whole models grew by that
+    factor (an extrapolation, stated as one).
+    """
     cause = "the TLS angular step: 0.1° in the embedded forest's scans, 0.017° in the study's"
     if not result:
         return cause + " (untested in this run)", ("TLS angular-step experiment not run: "
                                                   "`snakemake --cores 2 results/experiments/tls_step.json`")
     rows = {float(r["step_deg"]): r for r in result.get("steps", [])}
     parts = [f"{s:g}°: {r['ratio']:.1f}×" for s, r in sorted(rows.items(), reverse=True)]
-    return cause, (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
-                   f"restricted field of view): 0.02 m / 0.25 m filled cells {', '.join(parts)}")
+    text = (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
+            f"restricted field of view): 0.02 m / 0.25 m filled cells {', '.join(parts)}")
+    if len(rows) >= 2:
+        coarse, fine = rows[max(rows)]["ratio"], rows[min(rows)]["ratio"]
+        if coarse and np.isfinite(coarse) and np.isfinite(fine):
+            growth = fine / coarse
+            text += f": {growth:.1f}× more fine cells per coarse cell at {min(rows):g}°"
+            if run_ratio is not None and np.isfinite(run_ratio):
+                text += (f"; the run's {run_ratio:.1f}× would be {run_ratio * growth:.0f}× if the whole models "
+                         f"grew alike (study ≈ {cl.VOXEL_RATIO:.0f}×)")
+    return cause, text
 
 
 def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> list[dict]:
