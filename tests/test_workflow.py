@@ -31,7 +31,7 @@ SLURM_PROFILE = REPO / "profiles" / "slurm"
 
 #: the statistics the stats rule writes
 STATS_FILES = ("findings.md", "errors.csv", "summary_by_species.csv", "tests.csv", "multireturn_ttest.csv",
-               "table5.csv")
+               "table5.csv", "findings.csv")
 
 #: what a run may create in its working directory
 ALLOWED_TOP_LEVEL = {"results", "logs", ".snakemake"}
