@@ -575,12 +575,27 @@ def side_view_selection(metrics: pd.DataFrame, clouds: Mapping, *, methods=None,
 # --------------------------------------------------------------------------- driver
 
 
+def _in_order_of(metrics: pd.DataFrame, errors: pd.DataFrame) -> pd.DataFrame:
+    """The metrics rows sorted (stably) by the errors table's order of methods and scenarios;
+    the references first, names the errors lack last."""
+    if "method" not in metrics or "method" not in errors:
+        return metrics
+    m_order = {REFERENCE: -1, **{m: i for i, m in enumerate(pd.unique(errors["method"]))}}
+    s_order = {s: i for i, s in enumerate(pd.unique(errors["scenario"]))} if "scenario" in errors else {}
+    key = pd.DataFrame({"m": metrics["method"].astype(str).map(m_order).fillna(len(m_order)),
+                        "s": metrics["scenario"].astype(str).map(s_order).fillna(len(s_order))
+                        if "scenario" in metrics else 0})
+    return metrics.loc[key.sort_values(["m", "s"], kind="stable").index]
+
+
 def make_figures(metrics: pd.DataFrame, errors: pd.DataFrame, voxel_counts: pd.DataFrame, out_dir, *,
                  side_views: Mapping | None = None, ground_z: float = 0.0, tree_field: str | None = None,
                  tree_id=None, seed: int = 0) -> dict:
     """Write every figure under ``out_dir`` with the names of :data:`FIGURE_FILES`.
 
-    Figure 13 is written only when ``side_views`` (label → LAS path) is given.
+    Figure 13 is written only when ``side_views`` (label → LAS path) is given. Every figure
+    shows the methods and scenarios in the order of the errors table (the study configuration's
+    order, :func:`vlsforest.stats.compute_errors`).
 
     Returns
     -------
@@ -589,6 +604,7 @@ def make_figures(metrics: pd.DataFrame, errors: pd.DataFrame, voxel_counts: pd.D
     """
     out_dir = Path(out_dir)
     f = {k: out_dir / v for k, v in FIGURE_FILES.items()}
+    metrics = _in_order_of(metrics, errors)
     paths = {
         "fig07": fig07_percentile_curves(metrics, f["fig07"], seed=seed),
         "fig08": fig08_density_deviation(errors, f["fig08"]),
