@@ -230,6 +230,34 @@ def test_the_workflow_plans_from_a_read_only_checkout(tmp_path):
         _chmod_tree(root, writable=True)
 
 
+def test_the_quick_study_runs_from_a_read_only_checkout(quick_run, tmp_path):
+    """The whole quick study, run as an unprivileged user from a read-only copy of the checkout
+    (library, rules, configs, profiles, environment files), finishes; it writes
+    nothing into the copy, only ``results/``, ``logs/`` and ``.snakemake/`` into its working
+    directory, and its results are the bytes of the run from the writable checkout (timing files
+    aside)."""
+    reference, _, _ = quick_run
+    root = _read_only_copy(tmp_path / "checkout", ["Snakefile", "workflow", "config", "profiles", "envs"])
+    work, home = tmp_path / "work", tmp_path / "home"
+    work.mkdir()
+    home.mkdir()  # writable: numba's cache goes to ~/.cache/numba
+    try:
+        before = _snapshot(root)
+        env = job_env(_env(home, root, tmp_path))
+        cmd = _unprivileged(snakemake_command(*RUN, snakefile=root / "Snakefile"))
+        proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=1800)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert _snapshot(root) == before
+        assert {p.name for p in work.iterdir()} <= {"results", "logs", ".snakemake"}
+        ours = {f: p for f, p in _files(work / "results").items() if Path(f).name not in TIMING_FILES}
+        theirs = {f: p for f, p in _files(reference / "results").items() if Path(f).name not in TIMING_FILES}
+        assert sorted(ours) == sorted(theirs)
+        for f in sorted(ours):
+            assert ours[f].read_bytes() == theirs[f].read_bytes(), f
+    finally:
+        _chmod_tree(root, writable=True)
+
+
 # ------------------------------------------------------------------ synth: all or nothing
 def test_side_by_side_synth_with_a_failing_plot_leaves_no_forest(tmp_path, capsys):
     """Two plots recorded side by side (``--workers 2``); one of them cannot write its TLS folder
