@@ -333,3 +333,30 @@ def test_outputs_collected_in_a_worker_join_the_parent_transaction(tmp_path):
             write_text(tmp_path / "other" / "a.txt", "x")
             raise KeyboardInterrupt
     assert sorted(_files(tmp_path)) == ["shared/B/a.txt"] and not (tmp_path / "other").exists()
+
+
+def test_stale_lock_is_found_only_when_no_snakemake_works_in_the_folder(tmp_path):
+    """scripts/stale-lock.sh (run-study.sh removes such a lock, so that its command resumes a run
+    killed with kill -9): no lock → 1; a lock and no Snakemake process in the folder → 0; a lock
+    and a process named snakemake working in the folder → 1."""
+    script = REPO / "scripts" / "stale-lock.sh"
+
+    def check():
+        return subprocess.run(["bash", str(script), str(tmp_path)], capture_output=True, text=True).returncode
+
+    assert check() == 1
+    locks = tmp_path / ".snakemake" / "locks"
+    locks.mkdir(parents=True)
+    assert check() == 1  # an empty lock folder is no lock
+    (locks / "0.input.lock").write_text(str(tmp_path / "results") + "\n")
+    assert check() == 0
+    alive = subprocess.Popen(["bash", "-c", "exec -a snakemake sleep 60"], cwd=tmp_path)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 10 and b"snakemake" not in Path(f"/proc/{alive.pid}/cmdline").read_bytes():
+            time.sleep(0.05)
+        assert check() == 1
+    finally:
+        alive.kill()
+        alive.wait()
+    assert check() == 0
