@@ -61,8 +61,9 @@ def _group_gone(pgid: int, timeout: float = 60.0) -> bool:
 
 def test_kill_9_mid_study_then_the_documented_resume_gives_the_uninterrupted_bytes(quick_run, tmp_path):
     """The quick study is killed (SIGKILL to Snakemake's process group: Snakemake and every job)
-    once some simulations have written their clouds; the README's resume (``--unlock``, then the
-    run command again) finishes it. Compared with the uninterrupted run (``quick_run``): the same
+    once some simulations have written their clouds; its lock is found stale (what
+    ``run-study.sh`` removes), and the resume (``--unlock``, then the run command again)
+    finishes it. Compared with the uninterrupted run (``quick_run``): the same
     set of files under ``results/`` — so no temporary or partial file is left — and the same
     bytes for each, except the wall-clock timings (``timing.json``, ``sim_times.csv``,
     ``table5.csv``). ``logs/`` and ``.snakemake/`` are not results and are not compared."""
@@ -89,7 +90,10 @@ def test_kill_9_mid_study_then_the_documented_resume_gives_the_uninterrupted_byt
     done = list(work.glob("results/*/*/*/sim.laz"))
     assert 1 <= len(done) < n_sims, done
     assert not (work / "results" / "summary" / "tree_metrics.csv").exists()
-    # the killed run's lock stays behind: the run command alone refuses and names the remedy
+    # the killed run's lock stays behind, and run-study.sh's check finds it stale
+    stale = subprocess.run(["bash", str(REPO / "scripts" / "stale-lock.sh"), str(work)], capture_output=True)
+    assert stale.returncode == 0, stale.stderr
+    # Snakemake called directly refuses and names the remedy
     again = snakemake_cli(*RUN, cwd=work, timeout=600)
     assert again.returncode != 0 and "--unlock" in again.stdout + again.stderr, again.stderr[-3000:]
     unlock = snakemake_cli("--unlock", *RUN[2:], cwd=work, timeout=600)
