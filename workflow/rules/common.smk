@@ -298,14 +298,15 @@ def synth_threads(wildcards=None):
 
 
 def experiment_setting(name, key, default=None):
-    """A setting of experiment ``name`` (config ``experiments.<name>.<key>``), or ``default``."""
-    return (config.get("experiments") or {}).get(name, {}).get(key, default)
+    """A setting of experiment ``name`` (config ``experiments.<name>.<key>``; the schema supplies
+    the defaults it has), or ``default`` for a key without one."""
+    return config["experiments"][name].get(key, default)
 
 
 def enabled_experiments():
     """The experiments the config enables, by name → their result file."""
     return {name: f"results/experiments/{name}.json"
-            for name, block in (config.get("experiments") or {}).items() if block.get("enabled")}
+            for name, block in config["experiments"].items() if block["enabled"]}
 
 
 def study_param(wildcards=None):

@@ -19,7 +19,7 @@ rule experiment_tls_step:
     params:
         settings=synth_param,
         plot=lambda wildcards: experiment_setting("tls_step", "plot", (virtual_plots() or [""])[0]),
-        steps=lambda wildcards: " ".join(str(s) for s in experiment_setting("tls_step", "steps", [0.1, 0.017])),
+        steps=lambda wildcards: " ".join(str(s) for s in experiment_setting("tls_step", "steps")),
         trees=lambda wildcards: (f"--trees {experiment_setting('tls_step', 'trees')}"
                                  if experiment_setting("tls_step", "trees") else ""),
         band=lambda wildcards: (f"--band {experiment_setting('tls_step', 'band_m')}"
@@ -45,7 +45,7 @@ rule experiment_recording_detector:
     params:
         settings=synth_param,
         plot=lambda wildcards: experiment_setting("recording_detector", "plot", (virtual_plots() or [""])[0]),
-        sensor=lambda wildcards: experiment_setting("recording_detector", "sensor", "uls"),
+        sensor=lambda wildcards: experiment_setting("recording_detector", "sensor"),
         variants=lambda wildcards: json.dumps(experiment_setting("recording_detector", "variants", {}), sort_keys=True),
         library=command_hash("experiment"),
     shell:

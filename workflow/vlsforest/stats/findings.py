@@ -29,7 +29,7 @@ import pandas as pd
 
 from vlsforest.stats import claims as cl
 from vlsforest.stats.errors import block_rng, bootstrap_mean_ci
-from vlsforest.stats.roles import StudyRoles
+from vlsforest.stats.roles import StudyRoles, study_label
 from vlsforest.stats.table5 import penetration_class
 from vlsforest.stats.tables import REFERENCE, check_errors, scenario_order
 
@@ -438,8 +438,7 @@ def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> l
                  "realistic": "realistic", "overestimated": "overestimated"}
     out = []
     for key, (complexity, voxels, penetration, accuracy) in cl.TABLE5.items():
-        label = f"{key[1]:.2f} m fixed" if key[0] == "fixed" else \
-            {"none": "scaled", "random": "scaled + random shift", "cog": "scaled + CoG shift"}[key[1]]
+        label = study_label(*key)
         me = parts.get(key)
         claim = (f"Table 5, {label}: model generation {complexity}; voxels: {voxels or 'not stated'}; "
                  f"penetration {penetration}; CBH/CPA accuracy {accuracy}.")

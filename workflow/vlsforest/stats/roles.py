@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 
 from vlsforest.errors import ConfigError
 
-__all__ = ["STUDY_FIXED_SIZES", "STUDY_SHIFTS", "STUDY_SCANNERS", "PLATFORMS", "MethodRole", "StudyRoles"]
+__all__ = ["STUDY_FIXED_SIZES", "STUDY_SHIFTS", "STUDY_SCANNERS", "PLATFORMS", "MethodRole", "StudyRoles",
+           "study_label"]
 
 #: the study's fixed cell sizes (m), largest first (Table 2)
 STUDY_FIXED_SIZES = (0.25, 0.10, 0.05, 0.02)
@@ -39,6 +40,14 @@ STUDY_SCALING = {"a0": 0.25, "alpha": 0.5}
 PLATFORMS = ("als", "uls")
 #: scanner presets the study flew, by the survey they flew in
 STUDY_SCANNERS = {"riegl_vq780i": "als", "riegl_minivux1uav": "uls", "riegl_minivux1uav_helios1": "uls"}
+
+
+def study_label(kind: str, part) -> str:
+    """How the findings name one of the study's methods: ``("fixed", 0.25)`` → ``"0.25 m fixed"``,
+    ``("scaled", "cog")`` → ``"scaled + CoG shift"``."""
+    if kind == "fixed":
+        return f"{float(part):.2f} m fixed"
+    return {"none": "scaled", "random": "scaled + random shift", "cog": "scaled + CoG shift"}.get(part, "scaled")
 
 
 def _close(a, b) -> bool:
@@ -73,10 +82,9 @@ class MethodRole:
     def label(self) -> str:
         """How the findings name the part, e.g. ``"0.25 m fixed"`` or ``"scaled + CoG shift"``."""
         if self.kind == "fixed" and self.size is not None:
-            return f"{self.size:.2f} m fixed"
+            return study_label("fixed", self.size)
         if self.kind == "scaled":
-            return {"none": "scaled", "random": "scaled + random shift", "cog": "scaled + CoG shift"}.get(
-                self.shift or "none", "scaled")
+            return study_label("scaled", self.shift or "none")
         return self.name
 
 
