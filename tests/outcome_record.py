@@ -8,7 +8,8 @@
 the last run only (git keeps the earlier ones). One row per test, in the order they ran:
 
 - ``date`` (UTC, ISO 8601, when the run started), ``commit`` (``git describe --always --dirty``),
-  ``machine`` (host, OS, CPU, CPUs, memory, Python, NumPy), ``command`` (the pytest command line),
+  ``machine`` (host, OS, CPU, CPUs, memory, Python, NumPy), ``command`` (the pytest command line, after the
+  ``VLSFOREST_DEFAULT_RESULTS`` setting where one is given),
   ``exit_code`` (the run's) — the provenance fields of ``benchmarks/benchresult.py``;
 - ``test`` (the node id), ``outcome`` (``passed``, ``failed``, ``error``, ``skipped``,
   ``xfailed`` or ``xpassed``, as pytest reports them; a strict xfail that passes is ``failed``),
@@ -55,13 +56,19 @@ def _message(report, outcome) -> str:
     return (lines[0] if crash else lines[-1])[:500] if lines else ""
 
 
+#: environment variables written in front of the command when they are set
+_ENVIRONMENT = ("VLSFOREST_DEFAULT_RESULTS",)
+
+
 class OutcomeRecorder:
     """Collects each test's outcome and duration; writes the rows when the run ends."""
 
     def __init__(self, config, path: Path):
         self.config, self.path = config, path
         self.date = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-        self.command = shlex.join(["python", "-m", "pytest", *config.invocation_params.args])
+        # the environment that changes what the slow tests check (tests/test_default_forest.py)
+        env = [f"{k}={os.environ[k]}" for k in _ENVIRONMENT if os.environ.get(k)]
+        self.command = shlex.join([*env, "python", "-m", "pytest", *config.invocation_params.args])
         self.tests: dict[str, dict] = {}
 
     def pytest_runtest_logreport(self, report):

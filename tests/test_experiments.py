@@ -54,7 +54,7 @@ def test_finer_step_fills_more_fine_cells(tmp_path):
     outs = []
     for name in ("a.json", "b.json"):
         rc = main(["experiment", "tls-step", "--config-json", cfg, "--plot", "Q1", "--steps", "0.4", "0.2",
-                   "--trees", "1", "--band", "1.5", "-o", str(tmp_path / name)])
+                   "--trees", "1", "--band", "1.5", "--cells", "0.1", "-o", str(tmp_path / name)])
         assert rc == 0
         outs.append((tmp_path / name).read_bytes())
     assert outs[0] == outs[1]
@@ -65,6 +65,16 @@ def test_finer_step_fills_more_fine_cells(tmp_path):
     assert fine["cells_fine"] > coarse["cells_fine"]
     assert fine["ratio"] > coarse["ratio"]
     assert res["n_trees"] == 1 and res["band_m"] == 1.5
+    # the fill of each cell size, by the definition: n·h³ / (n_0.25·0.25³); the 0.25 m grid fills itself
+    for rec in (coarse, fine):
+        assert set(rec["cells"]) == {"0.02", "0.1", "0.25"}
+        assert rec["fill"]["0.25"] == 1.0
+        assert rec["fill"]["0.1"] == pytest.approx(rec["cells"]["0.1"] * 0.1 ** 3 / (rec["cells"]["0.25"] * 0.25 ** 3))
+        assert 0 < rec["fill"]["0.02"] < rec["fill"]["0.1"]
+        (group,) = rec["groups"].values()
+        assert group["n_trees"] == 1 and group["cells"] == rec["cells"]
+    # a finer step fills more of the crown with small cells
+    assert fine["fill"]["0.02"] > coarse["fill"]["0.02"]
 
 
 def test_cli_bad_config_is_one_line(tmp_path, capsys):
@@ -103,3 +113,17 @@ def test_recording_detector_rejects_bad_variants():
         run_recording_detector({"forest": {"preset": "quick"}}, "Q1", "uls", {"recording": {}})
     with pytest.raises(ConfigError, match="unknown physics candidate"):
         run_recording_detector({"forest": {"preset": "quick"}}, "Q1", "uls", {"v": {"nonsense": {}}})
+
+
+def test_fill_is_the_volume_share_of_the_coarse_cells():
+    # eight 0.125 m cells fill one 0.25 m cell; one 0.05 m cell fills 0.05³ / 0.25³ = 1/125 of it
+    assert tls_step.fill(8, 0.125, 1) == pytest.approx(1.0)
+    assert tls_step.fill(1, 0.05, 1) == pytest.approx(1 / 125)
+    assert tls_step.fill(10, 0.1, 4) == pytest.approx(10 * 0.001 / (4 * 0.015625))
+    assert math.isnan(tls_step.fill(3, 0.1, 0))
+    assert tls_step.cell_key(0.10) == "0.1" and tls_step.cell_key(0.25) == "0.25"
+
+
+def test_run_rejects_bad_cell_sizes():
+    with pytest.raises(ConfigError, match="cells_m"):
+        tls_step.run_tls_step({"forest": {"preset": "quick"}}, "Q1", [0.5], cells_m=[0.1, 0.0])

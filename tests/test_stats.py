@@ -554,3 +554,55 @@ def test_docs_state_every_tolerance_and_its_source():
     for t in tols:
         assert t.source in text, t
         assert f"{t.value:g}" in text, t
+
+
+def _fill_experiment(fill_01=(0.2, 0.5), contrast_002=((1.6, 0.8), (1.1, 1.0))):
+    """A TLS angular-step result with fill values: 0.10 m fill at 0.1° and 0.017°, and the
+    conifer / broadleaf fill of the 0.02 m cells at both steps."""
+    steps = []
+    for k, step in enumerate((0.1, 0.017)):
+        (c02, b02) = contrast_002[k]
+        steps.append({"step_deg": step, "ratio": 5.0, "fill": {"0.25": 1.0, "0.1": fill_01[k], "0.02": 0.01},
+                      "groups": {"conifer": {"n_trees": 3, "fill": {"0.25": 1.0, "0.02": 0.01 * c02}},
+                                 "broadleaf": {"n_trees": 2, "fill": {"0.25": 1.0, "0.02": 0.01 * b02}}}})
+    return {"tls_step": {"plot": "P3", "n_trees": 5, "steps": steps}}
+
+
+def test_f5_predicts_the_errors_at_the_studys_fill():
+    """The 0.10 m model's Hmean error (≈ 0 here, so F5 disagrees) moved towards the 0.25 m model's
+    (≈ +2 m) by the fill gained at the study's step: with fill 0.2 → 0.5 the prediction is
+    0 + (0.5 − 0.2)/(1 − 0.2)·(2 − 0) = +0.75 m, beyond the 0.1 m of a height slice."""
+    import re
+
+    m, vc, tt = study_like()
+    m.loc[m["method"] == "fixed_0.10", "hmean"] -= 1.0  # its +1 m offset gone: error ≈ 0
+    f, _ = _findings(m, vc, tt)
+    assert f["F5"]["verdict"] == "disagrees" and "not run" in f["F5"]["experiment"]
+    f, _ = _findings(m, vc, tt, experiments=_fill_experiment())
+    assert f["F5"]["cause"].startswith("the TLS angular step") and "0.1 m als hmean" in f["F5"]["cause"]
+    assert "0.1 m cells fill 20 % of the 0.25 m cells' volume at 0.1°, 50 % at 0.017°" in f["F5"]["experiment"]
+    pred = re.search(r"0\.1 m als hmean ([+-]\d+\.\d+) → ([+-]\d+\.\d+) m", f["F5"]["experiment"])
+    assert abs(float(pred.group(1))) < 0.05 and float(pred.group(2)) == pytest.approx(0.75, abs=0.05)
+    # a fill gained too small to move the error beyond 0.1 m: 0 + (0.01/0.8)·2 = 0.025 m
+    f, _ = _findings(m, vc, tt, experiments=_fill_experiment(fill_01=(0.2, 0.21)))
+    assert f["F5"]["cause"].startswith("not established") and "0.1 m als hmean" in f["F5"]["cause"]
+
+
+def test_f5_cannot_blame_the_step_for_the_coarse_model():
+    m, vc, tt = study_like(flip=True)  # the 0.25 m model's heights contradict the study too
+    f, _ = _findings(m, vc, tt, experiments=_fill_experiment())
+    assert "0.25 m als hmean" in f["F5"]["cause"] and "0.25 m als hmean" not in f["F5"]["experiment"]
+
+
+def test_f3b_cause_from_the_groups_fill_contrast():
+    m, vc, tt = study_like()  # fixed voxels keep the group difference: F3b disagrees
+    f, _ = _findings(m, vc, tt, experiments=_fill_experiment())
+    assert f["F3b"]["verdict"] == "disagrees"
+    # contrast 1.6 / 0.8 = 2.00 at 0.1°, 1.1 / 1.0 = 1.10 at 0.017°: nearer 1 at the study's step
+    assert "0.02 m: conifer / broadleaf fill 2.00 at 0.1°, 1.10 at 0.017°" in f["F3b"]["experiment"]
+    assert "3 conifer" in f["F3b"]["experiment"] and "2 broadleaf" in f["F3b"]["experiment"]
+    # every fixed model keeps the difference here; the experiment has the 0.02 m groups' fill only
+    assert f["F3b"]["cause"].startswith("the TLS angular step for 0.02 m: ")
+    assert f["F3b"]["cause"].endswith("0.05 m, 0.1 m, 0.25 m: not established")
+    f, _ = _findings(m, vc, tt, experiments=_fill_experiment(contrast_002=((1.1, 1.0), (2.0, 1.0))))
+    assert f["F3b"]["cause"].startswith("not established")

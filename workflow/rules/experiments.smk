@@ -24,10 +24,13 @@ rule experiment_tls_step:
                                  if experiment_setting("tls_step", "trees") else ""),
         band=lambda wildcards: (f"--band {experiment_setting('tls_step', 'band_m')}"
                                 if experiment_setting("tls_step", "band_m") else ""),
+        # the fill of every configured fixed method's cell size
+        cells=lambda wildcards: " ".join(f"{m['voxel_size']:g}" for m in config["methods"].values()
+                                         if m["kind"] == "fixed"),
         library=command_hash("experiment"),
     shell:
         "vlsforest experiment tls-step --config-json {params.settings:q} --plot {params.plot} "
-        "--steps {params.steps} {params.trees} {params.band} -o {output} > {log} 2>&1"
+        "--steps {params.steps} {params.trees} {params.band} --cells {params.cells} -o {output} > {log} 2>&1"
 
 
 rule experiment_recording_detector:

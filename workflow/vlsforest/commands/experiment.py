@@ -1,8 +1,9 @@
 """``vlsforest experiment``: experiments that test the cause of a finding (:mod:`vlsforest.experiments`).
 
 ``vlsforest experiment tls-step --config-json JSON --plot P3 [--steps 0.1 0.017] [--trees N]
-[--band M] -o tls_step.json`` scans a plot's target trees at several TLS angular steps and writes the
-filled 0.02 m and 0.25 m cells per step (:func:`vlsforest.experiments.tls_step.run_tls_step`).
+[--band M] [--cells 0.1 0.05] -o tls_step.json`` scans a plot's target trees at several TLS angular
+steps and writes the filled 0.02 m and 0.25 m cells (and those of the ``--cells`` sizes) and their
+fill per step (:func:`vlsforest.experiments.tls_step.run_tls_step`).
 ``vlsforest experiment recording-detector --config-json JSON --plot P3 [--sensor uls]
 --variants-json JSON -o recording_detector.json`` records a plot with the recording physics and
 with detector variants and writes the target trees' multiple-return shares
@@ -37,6 +38,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     t.add_argument("--trees", type=int, metavar="N", help="only the first N target trees")
     t.add_argument("--band", type=float, metavar="M",
                    help="scan only a horizontal slab of M metres through the middle of each crown")
+    t.add_argument("--cells", type=float, nargs="*", default=[], metavar="M",
+                   help="further cell sizes (m) to count and give the fill of, e.g. the fixed methods' 0.1 0.05")
     t.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
     t.set_defaults(func=run)
     declare_outputs(t, output=None)
@@ -93,7 +96,7 @@ def run(args) -> int:
     if args.trees is not None and args.trees < 1:
         raise ConfigError(f"--trees: must be ≥ 1, got {args.trees}")
     res = run_tls_step(cfg, args.plot, args.steps, seed=seed, trees=args.trees, band_m=args.band,
-                       progress=_log("tls-step"))
+                       cells_m=args.cells, progress=_log("tls-step"))
     write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
     for s in res["steps"]:
         print(f"vlsforest experiment tls-step: {s['step_deg']:g}°: {s['cells_fine']} / {s['cells_coarse']} cells, "

@@ -19,8 +19,17 @@ box from all positions are pooled, and the cells of a 0.02 m and of a 0.25 m gri
 the origin) that hold at least one return are counted: the filled voxels of the study's fixed
 0.02 m method and the cubes of its scaled methods.
 
+The same returns also give the fixed models of other cell sizes (``cells_m``, e.g. the study's
+0.10 and 0.05 m): their *fill*, the share of the 0.25 m cells' volume that the filled cells of
+that size occupy (``n_h·h³ / (n_0.25·0.25³)``), says how opaque the fixed model of that size
+is: 1 for the 0.25 m model itself, near 0 for a model of isolated small cubes. A finer step fills
+more small cells in the same crown, so a fixed model of a given size is more opaque at the
+study's step than at the embedded forest's; the fill per species group shows whether the
+porosity contrast between conifers and broadleaf trees survives the finer step.
+
 The result (:func:`run_tls_step`) is a JSON document with, per step, the returns and the filled
-cells of both grids summed over the trees and their ratio, and the same per tree.
+cells of every grid summed over the trees, the 0.02 / 0.25 m ratio and the fill per cell size
+(all trees and per species group), and the same per tree.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import math
 
 import numpy as np
 
+from vlsforest.domain.species import species_group
 from vlsforest.errors import ConfigError
 from vlsforest.sim.engine import simulate
 from vlsforest.sim.scanner import PRESETS
@@ -36,7 +46,8 @@ from vlsforest.sim.survey import survey_from_dict
 from vlsforest.synth.forest import forest_from_config, generate_plot_trees
 from vlsforest.synth.record import DEFAULT_RECORDING_PHYSICS, physics_overrides, plot_scene, synth_settings, tls_positions
 
-__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "filled_cells", "tree_fov", "run_tls_step"]
+__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "cell_key", "filled_cells", "fill",
+           "tree_fov", "run_tls_step"]
 
 #: cell of the study's finest fixed voxels (m)
 FINE_CELL_M = 0.02
@@ -66,6 +77,35 @@ def filled_cells(xyz: np.ndarray, cell: float) -> np.ndarray:
     if len(xyz) == 0:
         return np.zeros((0, 3), np.int64)
     return np.unique(np.floor(np.asarray(xyz, float) / cell).astype(np.int64), axis=0)
+
+
+def cell_key(cell: float) -> str:
+    """The key of a cell size in the result's ``cells`` and ``fill`` mappings (e.g. ``"0.1"``)."""
+    return f"{float(cell):g}"
+
+
+def fill(n_cells: float, cell: float, n_coarse: float, coarse: float = COARSE_CELL_M) -> float:
+    """The share of the coarse cells' volume that ``n_cells`` filled cells of side ``cell`` occupy.
+
+    Parameters
+    ----------
+    n_cells : float
+        Filled cells of side ``cell``.
+    cell : float
+        Their side (m).
+    n_coarse : float
+        Filled coarse cells of the same points.
+    coarse : float
+        The coarse cell's side (m; default the scaled cubes' 0.25 m).
+
+    Returns
+    -------
+    float
+        ``n_cells·cell³ / (n_coarse·coarse³)``: 1 for the coarse grid itself; NaN without coarse cells.
+    """
+    if not n_coarse:
+        return math.nan
+    return float(n_cells) * float(cell) ** 3 / (float(n_coarse) * float(coarse) ** 3)
 
 
 def tree_fov(position, corners: np.ndarray, v_limits) -> dict | None:
@@ -122,7 +162,7 @@ def _scan(scene, pos, fov, step, tls_cfg, physics, seed):
 
 
 def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: int | None = None,
-                 band_m: float | None = None, progress=None) -> dict:
+                 band_m: float | None = None, cells_m=(), progress=None) -> dict:
     """Scan a plot's target trees at several TLS steps and count the filled cells.
 
     Parameters
@@ -140,6 +180,9 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     band_m : float, optional
         Scan and count only a horizontal slab of this height (m) through the middle of each
         crown (between the lowest foliage and the top); default the whole tree.
+    cells_m : sequence of float
+        Further cell sizes (m) whose filled cells and fill are counted besides 0.02 and 0.25 m
+        (e.g. the configured fixed methods' sizes).
     progress : callable, optional
         Called with a line of text after each tree × step.
 
@@ -147,8 +190,10 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     -------
     dict
         ``plot``, ``seed``, ``steps`` (per step: ``step_deg``, ``n_returns``, ``cells_fine``,
-        ``cells_coarse``, ``ratio``), ``trees`` (per tree and step the same), ``n_trees``,
-        ``n_positions``, the cell sizes and the method in words.
+        ``cells_coarse``, ``ratio``, ``cells`` and ``fill`` per cell size (:func:`cell_key`), and
+        ``groups``: per species group its ``n_trees``, ``cells`` and ``fill``), ``trees`` (per tree
+        its species, group and per step the same but ``groups``), ``n_trees``, ``n_positions``, the
+        cell sizes and the method in words.
 
     Raises
     ------
@@ -160,6 +205,10 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     steps = [float(s) for s in steps]
     if not steps or any(not (s > 0) for s in steps):
         raise ConfigError(f"steps: every step must be > 0 degrees, got {steps}")
+    extra = [float(c) for c in cells_m]
+    if any(not (c > 0 and math.isfinite(c)) for c in extra):
+        raise ConfigError(f"cells_m: every cell size must be > 0 m, got {list(cells_m)}")
+    sizes = sorted({FINE_CELL_M, COARSE_CELL_M, *extra})
     st = synth_settings(cfg)
     layouts = {p.name: p for p in forest_from_config(st["forest"], seed)}
     if plot not in layouts:
@@ -176,7 +225,8 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     scene = plot_scene(lay, geoms, "tls", physics)
     positions = [p for p in tls_positions(lay, tls_cfg, geoms) if p["tilt_deg"] == 0.0]
     per_tree = []
-    totals = {s: {"n_returns": 0, "cells_fine": 0, "cells_coarse": 0} for s in steps}
+    totals = {s: {"n_returns": 0, "cells": dict.fromkeys(map(cell_key, sizes), 0)} for s in steps}
+    by_group: dict = {}
     for tid in targets:
         g = geoms[tid]
         v = g.vertices
@@ -187,7 +237,8 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
             lo[2], hi[2] = mid - band_m / 2.0, mid + band_m / 2.0
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         ids = {10 * tid + k for k in _PART_IDS}
-        row = {"tree_id": int(tid), "species": geoms[tid].species, "steps": []}
+        group = species_group(geoms[tid].species, default="other")
+        row = {"tree_id": int(tid), "species": geoms[tid].species, "group": group, "steps": []}
         for step in steps:
             pts = []
             for k, pos in enumerate(positions, start=1):
@@ -199,18 +250,25 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
                 sel = np.isin(res.points["object_id"], list(ids)) & (xyz_k[:, 2] >= lo[2]) & (xyz_k[:, 2] <= hi[2])
                 pts.append(xyz_k[sel])
             xyz = np.concatenate(pts) if pts else np.zeros((0, 3))
-            nf, nc = len(filled_cells(xyz, FINE_CELL_M)), len(filled_cells(xyz, COARSE_CELL_M))
-            rec = {"step_deg": step, "n_returns": int(len(xyz)), "cells_fine": int(nf), "cells_coarse": int(nc),
-                   "ratio": nf / nc if nc else math.nan}
+            cells = {cell_key(c): int(len(filled_cells(xyz, c))) for c in sizes}
+            rec = _step_record(step, len(xyz), cells)
             row["steps"].append(rec)
-            for k in ("n_returns", "cells_fine", "cells_coarse"):
-                totals[step][k] += rec[k]
+            totals[step]["n_returns"] += rec["n_returns"]
+            grp = by_group.setdefault(step, {}).setdefault(group, {"n_trees": 0, "cells": dict.fromkeys(cells, 0)})
+            grp["n_trees"] += 1
+            for k, n in cells.items():
+                totals[step]["cells"][k] += n
+                grp["cells"][k] += n
+            nf, nc = cells[cell_key(FINE_CELL_M)], cells[cell_key(COARSE_CELL_M)]
             if progress is not None:
                 progress(f"tree {tid} at {step:g}°: {rec['n_returns']} returns, {nf} fine / {nc} coarse cells")
         per_tree.append(row)
-    out_steps = [{"step_deg": s, **totals[s],
-                  "ratio": totals[s]["cells_fine"] / totals[s]["cells_coarse"] if totals[s]["cells_coarse"] else math.nan}
-                 for s in steps]
+    out_steps = []
+    for s in steps:
+        rec = _step_record(s, totals[s]["n_returns"], totals[s]["cells"])
+        rec["groups"] = {g: {"n_trees": v["n_trees"], "cells": v["cells"],
+                             "fill": _fills(v["cells"])} for g, v in sorted(by_group.get(s, {}).items())}
+        out_steps.append(rec)
     return {
         "experiment": "tls_step",
         "plot": plot,
@@ -220,8 +278,22 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
         "band_m": band_m,
         "cell_fine_m": FINE_CELL_M,
         "cell_coarse_m": COARSE_CELL_M,
+        "cells_m": sizes,
         "method": ("each target tree scanned from the recordings' untilted positions inside its bounding box's "
-                   "field of view; the tree's own returns pooled; cells holding at least one return counted"),
+                   "field of view; the tree's own returns pooled; cells holding at least one return counted; "
+                   "fill = filled cells' volume / filled 0.25 m cells' volume"),
         "steps": out_steps,
         "trees": per_tree,
     }
+
+
+def _fills(cells: dict) -> dict:
+    """Fill (:func:`fill`) of every cell size of a ``cells`` mapping (keys from :func:`cell_key`)."""
+    nc = cells[cell_key(COARSE_CELL_M)]
+    return {k: fill(n, float(k), nc) for k, n in cells.items()}
+
+
+def _step_record(step: float, n_returns: int, cells: dict) -> dict:
+    nf, nc = cells[cell_key(FINE_CELL_M)], cells[cell_key(COARSE_CELL_M)]
+    return {"step_deg": float(step), "n_returns": int(n_returns), "cells_fine": int(nf), "cells_coarse": int(nc),
+            "ratio": nf / nc if nc else math.nan, "cells": dict(cells), "fill": _fills(cells)}

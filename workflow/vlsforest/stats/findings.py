@@ -13,7 +13,10 @@ A finding that disagrees names its cause only where an experiment tests it:
   the Table 5 penetration rows then re-judge each method against the study's real shares
   instead of the recordings (the experiment of that cause, computed here);
 * ``F2`` and the Table 5 voxel rows take the result of the TLS angular-step experiment
-  (:mod:`vlsforest.experiments.tls_step`) when its file is given.
+  (:mod:`vlsforest.experiments.tls_step`) when its file is given; so do ``F5`` (the
+  experiment's fill of a fixed model smaller than the 0.25 m cell at both steps: how opaque that
+  model is at the study's step, and the errors that predicts) and ``F3b`` (the fill of the fixed
+  models per species group: whether their porosity contrast fades at the study's step).
 
 Everywhere else the cause column says that no experiment has tested a cause yet.
 """
@@ -41,6 +44,10 @@ ALPHA = 0.05
 CI_LEVEL = 0.95
 #: bootstrap resamples of each effect
 N_BOOT = 2000
+#: the TLS angular-step experiment's key of the study's 0.25 m cell (the scaled cubes' cell, which
+#: its fill values are shares of)
+_COARSE_KEY = "0.25"
+
 #: the cause column of a disagreement that no experiment has tested
 NO_EXPERIMENT = "not established: no experiment of this project tests a cause yet"
 
@@ -291,7 +298,13 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                           "reference data and in the scaled-voxel simulations.", ok, ev, sig_tol))
     fixed = [r.name for r in roles.fixed_methods() if have(r.name)]
     ok, ev = mr_parts(fixed, False, "F3b")
-    out.append(_row("F3b", "Fixed voxels do not reproduce this conifer–broadleaf difference.", ok, ev, sig_tol))
+    cause = experiment = ""
+    failing = sorted({float(r.size) for r in roles.fixed_methods() if have(r.name)
+                      and any(not o and e.startswith(f"{r.name} ") for o, e in zip(ok, ev))})
+    if failing:
+        cause, experiment = _group_fill_cause(experiments.get("tls_step"), failing)
+    out.append(_row("F3b", "Fixed voxels do not reproduce this conifer–broadleaf difference.", ok, ev, sig_tol,
+                    cause, experiment))
 
     # F4: the CoG shift lowers the percentiles, multiple returns, tree height and CPA (slightly)
     ok, ev = [], []
@@ -313,6 +326,8 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
 
     # F5: large fixed voxels: Hmean and Hmin too high, Hsd too low
     ok, ev = [], []
+    misses = []  # the parts that disagree: (cell size, scenario, metric, sign, mean error)
+    means = {}   # (method, scenario, metric) -> mean error
     for r in roles.fixed_methods():
         if r.size < 0.1 - 1e-9 or not have(r.name):
             continue
@@ -321,12 +336,19 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                 e = _effect(E.block(r.name, sc, metric)["error"], seed, "F5", r.name, sc, metric)
                 if e is None:
                     continue
+                means[(r.name, sc, metric)] = e.mean
                 good = _beyond(e, sign, cl.NEGLIGIBLE_HEIGHT.value)
                 ok.append(good)
+                if not good:
+                    misses.append((float(r.size), sc, metric, sign, e.mean))
                 ev.append(f"{r.name} {sc}: {metric} error {e.text('m')}: "
                           f"{'too ' + ('high' if sign > 0 else 'low') if good else 'not too ' + ('high' if sign > 0 else 'low')}")
+    cause = experiment = ""
+    if misses:
+        coarse_errors = {(sc, metric): means.get((coarse, sc, metric)) for _, sc, metric, _, _ in misses}
+        cause, experiment = _fill_cause(experiments.get("tls_step"), misses, coarse_errors)
     out.append(_row("F5", "Large fixed voxels (0.25, 0.10 m) give too high Hmean and Hmin and too low Hsd.", ok, ev,
-                    _tolerance_text(cl.NEGLIGIBLE_HEIGHT)))
+                    _tolerance_text(cl.NEGLIGIBLE_HEIGHT), cause, experiment))
 
     # F6: the random shift changes nothing
     ok, ev, tols = [], [], []
@@ -422,6 +444,123 @@ def _tls_step_cause(result, run_ratio: float | None = None) -> tuple[str, str]:
                 text += (f"; the run's {run_ratio:.1f}× would be {run_ratio * growth:.0f}× if the whole models "
                          f"grew alike (study ≈ {cl.VOXEL_RATIO:.0f}×)")
     return cause, text
+
+
+def _step_rows(result) -> dict:
+    """The TLS angular-step experiment's steps by angle, those with fill values only."""
+    return {float(r["step_deg"]): r for r in (result or {}).get("steps", []) if r.get("fill")}
+
+
+def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
+    """Cause and experiment of F5's disagreeing parts from the fill the TLS angular-step experiment
+    measured at the embedded forest's and the study's step.
+
+    The proposed cause: at the study's finer step a fixed model smaller than the 0.25 m cell fills
+    more of the crown, so it is more opaque, nearer the 0.25 m model. The experiment gives the
+    model's fill ``a`` at the run's step and ``b`` at the study's. A part's error at the study's
+    step is predicted by moving its mean error towards the 0.25 m model's (whose fill is 1) in
+    proportion to the fill gained: ``e + (b − a)/(1 − a)·(e_0.25 − e)`` (a linear interpolation in
+    fill, stated as one). The cause holds for a part whose predicted error lies beyond the
+    negligible effect in the claimed direction. The 0.25 m model fills its own cells at any step,
+    so the step cannot explain its parts.
+
+    Parameters
+    ----------
+    result : dict or None
+        The experiment's result.
+    misses : list of tuple
+        ``(cell size, scenario, metric, sign, mean error)`` of each part that disagrees.
+    coarse_errors : dict
+        ``(scenario, metric)`` → the 0.25 m model's mean error (None where absent).
+    """
+    step_cause = "the TLS angular step: 0.1° in the embedded forest's scans, 0.017° in the study's"
+    rows = _step_rows(result)
+    if len(rows) < 2:
+        return (step_cause + " (untested in this run)",
+                "TLS angular-step experiment not run with fill: "
+                "`snakemake --cores 2 results/experiments/tls_step.json`")
+    coarse_step, fine_step = max(rows), min(rows)
+    margin = cl.NEGLIGIBLE_HEIGHT.value
+    fills, preds, explained, unexplained = [], [], [], []
+    for size, sc, metric, sign, mean in misses:
+        key = f"{float(size):g}"
+        name = f"{key} m {sc} {metric}"
+        a, b = rows[coarse_step]["fill"].get(key), rows[fine_step]["fill"].get(key)
+        e_c = coarse_errors.get((sc, metric))
+        if (key == _COARSE_KEY or a is None or b is None or e_c is None
+                or not all(np.isfinite(v) for v in (a, b, e_c)) or a >= 1.0):
+            unexplained.append(name)
+            continue
+        text = (f"{key} m cells fill {100 * a:.0f} % of the 0.25 m cells' volume at {coarse_step:g}°, "
+                f"{100 * b:.0f} % at {fine_step:g}°")
+        if text not in fills:
+            fills.append(text)
+        pred = mean + (b - a) / (1.0 - a) * (e_c - mean)
+        good = bool(sign * pred > margin)
+        preds.append(f"{name} {mean:+.2f} → {pred:+.2f} m")
+        (explained if good else unexplained).append(name)
+    text = (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
+            f"restricted field of view): " + ("; ".join(fills) if fills else "no fill for these cell sizes"))
+    if preds:
+        text += ("; mean errors moved towards the 0.25 m model's by the fill gained (a linear interpolation): "
+                 + ", ".join(preds) + f" (negligible: ±{margin:g} m)")
+    if explained:
+        cause = (f"{step_cause}: at the study's step the finer fixed models fill more of the crown and are more "
+                 f"opaque; the predicted errors of {', '.join(explained)} lie beyond the negligible effect as the "
+                 f"study finds")
+        if unexplained:
+            cause += f"; not established for {', '.join(unexplained)}"
+        return cause, text
+    return (NO_EXPERIMENT if not fills else
+            f"not established: the fill gained at the study's step does not move {', '.join(unexplained)} "
+            f"beyond the negligible effect"), text
+
+
+def _group_fill_cause(result, sizes) -> tuple[str, str]:
+    """Cause and experiment of F3b from the fill per species group at both TLS steps.
+
+    The proposed cause: at the study's finer step the fixed models of both groups fill their
+    crowns more alike, so the porosity contrast that gives conifers more multiple returns fades.
+    The contrast of a cell size is the conifers' fill over the broadleaf trees'; the experiment
+    supports the cause for a size whose contrast lies nearer 1 (in ratio) at the finest step.
+    """
+    rows = _step_rows(result)
+    if len(rows) < 2 or not all({"conifer", "broadleaf"} <= set(r.get("groups", {})) for r in rows.values()):
+        return (NO_EXPERIMENT if rows else "not established: the TLS angular step is the candidate (untested in this run)",
+                "TLS angular-step experiment with conifer and broadleaf targets not run: "
+                "`snakemake --cores 2 results/experiments/tls_step.json`")
+    coarse_step, fine_step = max(rows), min(rows)
+
+    def contrast(step, key):
+        g = rows[step]["groups"]
+        c, b = g["conifer"]["fill"].get(key), g["broadleaf"]["fill"].get(key)
+        return c / b if c is not None and b and np.isfinite(c) and np.isfinite(b) and c > 0 else math.nan
+
+    parts, supported, untested = [], [], []
+    for size in sizes:
+        key = f"{float(size):g}"
+        a, b = contrast(coarse_step, key), contrast(fine_step, key)
+        if not (np.isfinite(a) and np.isfinite(b)) or key == _COARSE_KEY:
+            untested.append(f"{key} m")
+            continue
+        parts.append(f"{key} m: conifer / broadleaf fill {a:.2f} at {coarse_step:g}°, {b:.2f} at {fine_step:g}°")
+        if abs(math.log(b)) < abs(math.log(a)):
+            supported.append(f"{key} m")
+    text = (f"TLS angular-step experiment ({result.get('plot')}, "
+            + ", ".join(f"{v['n_trees']} {g}" for g, v in sorted(rows[fine_step]["groups"].items()))
+            + " target trees, restricted field of view): " + ("; ".join(parts) if parts else "no fill contrast"))
+    rest = f"; {', '.join(untested)}: not established" if untested else ""
+    if untested:
+        text += f"; not testable by the step: {', '.join(untested)} (the 0.25 m model fills its own cells)"
+    if parts and len(supported) == len(parts):
+        return (f"the TLS angular step for {', '.join(supported)}: at the study's step the fixed models of conifers "
+                f"and broadleaf trees fill their crowns more alike, so the porosity contrast behind the difference "
+                f"fades{rest}", text)
+    if supported:
+        return (f"partly the TLS angular step: the groups' fill contrast fades at the study's step for "
+                f"{', '.join(supported)} only{rest}", text)
+    return ("not established: the groups' fill contrast does not fade at the study's step" if parts else NO_EXPERIMENT,
+            text)
 
 
 def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> list[dict]:
