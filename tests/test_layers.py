@@ -175,3 +175,22 @@ def test_private_crossings_are_found(tmp_path, source, expect):
     (pkg / "report.py").write_text(source)
     (pkg / "sim" / "engine.py").write_text("from vlsforest.sim import _embree\nfrom vlsforest.sim._voxelgrid import VoxelGrid\n")
     assert [f.split(": ", 1)[1] for f in private_crossings(pkg)] == [expect]
+
+
+def test_io_package_names_resolve_to_their_modules_on_first_use():
+    """`vlsforest.io`'s public names are its submodules' own objects, loaded when first asked for:
+    importing the CLI loads neither laspy nor pandas (each command imports what it needs)."""
+    import importlib
+
+    import vlsforest.io as vio
+
+    for name in vio.__all__:
+        home = importlib.import_module(f"vlsforest.io.{vio._HOMES[name]}")
+        assert getattr(vio, name) is getattr(home, name), name
+    assert set(vio._HOMES) == set(vio.__all__)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        vio.no_such_name
+    code = ("import sys, vlsforest.cli; "
+            "print(' '.join(m for m in ('laspy', 'pandas', 'numba') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from vlsforest.errors import InputDataError
 from vlsforest.io.atomic import write_bytes
@@ -226,6 +225,8 @@ def _obj_lines(raw: bytes, rows) -> list[tuple[int, str]]:
 
 
 def _obj_vertices(path, raw, b, line_start, line_end, v_lines) -> np.ndarray:
+    import pandas as pd
+
     if len(v_lines) == 0:
         return np.zeros((0, 3))
     block = _obj_block(b, line_start, line_end, v_lines)
@@ -265,6 +266,8 @@ def _obj_vertices(path, raw, b, line_start, line_end, v_lines) -> np.ndarray:
 
 
 def _obj_faces(path, raw, b, line_start, line_end, f_lines):
+    import pandas as pd
+
     from vlsforest.io._text import token_counts
 
     block = np.frombuffer(_obj_block(b, line_start, line_end, f_lines), dtype=np.uint8)
@@ -537,6 +540,8 @@ def _ply_ascii(path, body: bytes, elements, header_lines: int) -> dict:
 
 
 def _ply_ascii_element(path, rows, el: _Element) -> dict:
+    import pandas as pd
+
     nscal = len(el.props)
     has_list = any(p.count_dtype for p in el.props)
     if not has_list:
@@ -585,6 +590,8 @@ def _ply_ascii_element(path, rows, el: _Element) -> dict:
 
 def _ply_ascii_lists(rows):
     """Vectorised parse of ASCII rows ``n i1 .. in``; None when anything looks off."""
+    import pandas as pd
+
     from vlsforest.io._text import token_counts
 
     block = "\n".join(r for _, r in rows).encode("ascii", errors="replace")

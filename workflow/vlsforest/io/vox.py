@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from vlsforest.errors import InputDataError
 from vlsforest.io.atomic import atomic_path
@@ -251,6 +250,8 @@ def read_vox(path) -> VoxFile:
         i/j/k that are not whole numbers or lie outside ``#split``, or a voxel listed twice.
         The message names the file and, where it applies, the line.
     """
+    import pandas as pd
+
     path = Path(path)
     try:
         raw = path.read_bytes()
