@@ -64,13 +64,9 @@ for _name, _entry in config["methods"].items():
         )
 
 # the diagnosis simulates one configured method on configured scenarios
-_diag = config.get("diagnosis") or {}
-if _diag.get("enabled", False):
-    if _diag.get("method", "scaled") not in config["methods"]:
-        raise WorkflowError(
-            f"Invalid configuration at 'diagnosis.method': {_diag.get('method', 'scaled')!r} is not a "
-            f"configured method ({', '.join(config['methods'])})"
-        )
+_diag = diagnosis_cfg()
+if _diag["enabled"]:
+    diagnosis_method()  # raises for a method that is not configured (or none to default to)
     for _pl in _diag.get("plots", []):
         if _pl not in config["plots"]:
             raise WorkflowError(

@@ -196,6 +196,8 @@ def _mutate(cfg, what):
         cfg["segment"] = {"stem_bridges": 20}
     elif what == "negative_realisations":
         cfg.setdefault("diagnosis", {})["realisations"] = -1
+    elif what == "unknown_diagnosis_method":
+        cfg["diagnosis"] = {"enabled": True, "method": "scaled_typo"}
     elif what == "real_plot_without_scans":
         cfg["plots"]["R1"] = {"kind": "real", "tls": ["a.laz"], "plot_json": "p.json"}
     return cfg
@@ -214,6 +216,7 @@ BAD_CONFIGS = [
     ("unknown_method_kind", "methods.fixed_0.25.kind", "unknown kind 'voxelz'"),
     ("misspelt_segment_key", "segment", "'stem_bridges' was unexpected"),
     ("negative_realisations", "diagnosis.realisations", "-1 is less than the minimum of 0"),
+    ("unknown_diagnosis_method", "diagnosis.method", "'scaled_typo' is not a configured method"),
 ]
 
 
@@ -434,6 +437,22 @@ def test_local_profile_runs_one_cpu_jobs_side_by_side_and_the_diagnosis_first(tm
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
     jobs = _dry_run_jobs(proc.stdout + proc.stderr)
     assert jobs and not any(j["priority"] for j in jobs) and "diagnose" not in {j["rule"] for j in jobs}
+
+
+def test_diagnosis_method_defaults_to_the_unshifted_scaled_method(tmp_path):
+    """Without diagnosis.method the diagnosis simulates the first scaled method without a shift,
+    whatever its name."""
+    cfg = _load(DEFAULT)
+    cfg["methods"] = {("pad_cubes" if k == "scaled" else k): v for k, v in cfg["methods"].items()}
+    del cfg["diagnosis"]["method"]
+    path = tmp_path / "renamed.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    proc = _snakemake("-n", "--cores", 2, "--configfile", path, cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    first = {(j["rule"], j["wildcards"]) for j in _dry_run_jobs(proc.stdout + proc.stderr) if j["priority"] == "highest"}
+    plot = cfg["diagnosis"]["plots"][0]
+    assert ("scene", f"plot={plot}, method=pad_cubes") in first
+    assert not any("method=scaled_" in w for _, w in first)
 
 
 def test_slurm_profile_dry_run(tmp_path):

@@ -208,8 +208,7 @@ def pad_args(wildcards):
     the scaled methods apply per species)."""
     p = config["pad"]
     return (
-        f"--voxel-size {p['voxel_size']} --estimator {p.get('estimator', 'transmittance')} "
-        f"--min-pulses {p.get('min_pulses', 5)}"
+        f"--voxel-size {p['voxel_size']} --estimator {p['estimator']} --min-pulses {p['min_pulses']}"
     )
 
 
@@ -240,12 +239,17 @@ def timing_files():
     )
 
 
+def unshifted_scaled_methods():
+    """The configured scaled methods without a shift, in the config's order."""
+    ms = config["methods"]
+    return [m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift", "none") == "none"]
+
+
 def side_view_methods():
     """The methods figure 13 shows: the first unshifted scaled method and the coarsest fixed one."""
     ms = config["methods"]
-    scaled = [m for m in METHODS if ms[m].get("kind") == "scaled" and ms[m].get("shift", "none") == "none"]
-    fixed = sorted((m for m in METHODS if ms[m].get("kind") == "fixed"), key=lambda m: -float(ms[m]["voxel_size"]))
-    return scaled[:1] + fixed[:1]
+    fixed = sorted((m for m in METHODS if ms[m]["kind"] == "fixed"), key=lambda m: -float(ms[m]["voxel_size"]))
+    return unshifted_scaled_methods()[:1] + fixed[:1]
 
 
 def side_view_clouds():
@@ -414,12 +418,29 @@ def diagnose_runtime(wildcards, attempt):
 # Diagnosis (workflow/rules/diagnose.smk)
 # ---------------------------------------------------------------------------------------------
 def diagnosis_cfg():
-    return config.get("diagnosis") or {}
+    return config["diagnosis"]
+
+
+def diagnosis_method():
+    """The method whose scenes the diagnosis simulates: ``diagnosis.method``, else the first
+    scaled method without a shift (the study's PAD-scaled cubes)."""
+    d = diagnosis_cfg()
+    if "method" in d:
+        if d["method"] not in METHODS:
+            raise WorkflowError(f"Invalid configuration at 'diagnosis.method': {d['method']!r} is not a "
+                                f"configured method ({', '.join(METHODS)})")
+        return d["method"]
+    scaled = unshifted_scaled_methods()
+    if not scaled:
+        raise WorkflowError("Invalid configuration at 'diagnosis': 'method' is required: no scaled method "
+                            "without a shift is configured")
+    return scaled[0]
+
 
 
 def diagnosis_scenarios():
     d = diagnosis_cfg()
-    if not d.get("enabled", False):
+    if not d["enabled"]:
         return []
     return [s for s in d.get("scenarios", SCENARIOS) if s in SCENARIOS]
 
@@ -429,7 +450,7 @@ def diagnosis_plots():
 
 
 def diagnosis_inputs(wildcards):
-    method = diagnosis_cfg().get("method", "scaled")
+    method = diagnosis_method()
     rec = recording_of(wildcards.scenario)
     out = {}
     for plot in diagnosis_plots():
@@ -444,23 +465,21 @@ def diagnosis_inputs(wildcards):
 def diagnosis_param(wildcards):
     """The sim-config of one scenario (everything the diagnosis reads), as JSON."""
     d = diagnosis_cfg()
-    method = d.get("method", "scaled")
+    method = diagnosis_method()
     sc = config["scenarios"][wildcards.scenario]
+    # the settings the config leaves out take the diagnosis' own defaults (vlsforest.diagnose.setup.SCHEMA)
+    own = ("folds", "grid", "candidates", "beam_sample_quality", "realisations")
     setup = {
         "scenario": wildcards.scenario,
         "seed": config["seed"],
-        "folds": d.get("folds", 3),
-        "grid": d.get("grid", 7),
-        "candidates": d.get("candidates") or None,
-        **({"beam_sample_quality": d["beam_sample_quality"]} if "beam_sample_quality" in d else {}),
-        **({"realisations": d["realisations"]} if "realisations" in d else {}),
+        **{k: d[k] for k in own if k in d},
         "plots": {
             plot: {
                 "real": _plot_path(plot, "recording", recording_of(wildcards.scenario)),
                 "scene": f"results/{plot}/{method}/scene/scene.yaml",
                 "survey": f"results/{plot}/surveys/{wildcards.scenario}.yaml",
                 "segment": f"results/{plot}/segment",
-                "radius": sc.get("extraction_radius_m", 0.5),
+                "radius": sc["extraction_radius_m"],
                 # absent: the library's default (vlsforest.diagnose.setup.REGION_MARGIN_M)
                 **({"margin": d["region_margin_m"]} if "region_margin_m" in d else {}),
             }
