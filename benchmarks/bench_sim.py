@@ -144,25 +144,23 @@ def _bare_embree(scene):
     from embreex.mesh_construction import TriangleMesh
     import numpy as np
 
-    from vlsforest.sim.scene import _cube_triangle_chunks
+    from vlsforest.sim.scene_geometry import PLANE_FACES
 
-    if not all(scene._routing()):
+    if not all(scene.tracer.routing):
         return None, None  # the big voxel sets are traced by the grid: no triangle equivalent
     lo, hi = scene.bounds()
     shift = 0.5 * (lo + hi)
     sc = rtcore_scene.EmbreeScene()
     parts = []
-    for m in scene._meshes:
+    for m in scene.geometry.meshes:
         TriangleMesh(sc, (m.vertices - shift).astype(np.float32), m.faces.astype(np.int32))
         parts.append(m.part)
-    for v in scene._voxelsets:
-        pieces = list(_cube_triangle_chunks(v, shift))
+    for v in scene.geometry.voxels:
+        pieces = list(v.triangle_chunks(shift))
         TriangleMesh(sc, np.concatenate([c[0] for c in pieces]), np.concatenate([c[1] for c in pieces]))
         parts.append(v.part)
-    for p in scene._planes:
-        x0, y0, x1, y1 = p.extent
-        verts = np.array([[x0, y0, p.z], [x1, y0, p.z], [x1, y1, p.z], [x0, y1, p.z]]) - shift
-        TriangleMesh(sc, verts.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
+    for p in scene.geometry.planes:
+        TriangleMesh(sc, (p.corners() - shift).astype(np.float32), PLANE_FACES)
         parts.append(p.part)
     return (sc, shift), np.asarray(parts, dtype=np.int32)
 

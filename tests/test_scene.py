@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from vlsforest.cli import main
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.vox import make_vox, write_vox
-from vlsforest.sim import Scene
+from vlsforest.sim import Scene, routing
 
 
 def _rays(n, rng, lo, hi):
@@ -46,7 +46,7 @@ def test_embree_and_grid_backends_agree(scaled):
 
 
 def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
-    monkeypatch.setattr(Scene, "EMBREE_VOXEL_LIMIT", 500)
+    monkeypatch.setattr(routing, "EMBREE_VOXEL_LIMIT", 500)
     rng = np.random.default_rng(3)
     a = np.unique(rng.integers(0, 12, size=(400, 3)), axis=0)          # < 500 alone
     b = np.unique(rng.integers(20, 32, size=(400, 3)), axis=0)         # same lattice: 2 × ~390 > 500
@@ -58,7 +58,7 @@ def test_auto_backend_sends_a_crowded_lattice_to_one_grid(monkeypatch):
         sc.add_voxels(1, a, [0.0, 0.0, 0.0], size)
         sc.add_voxels(2, b, [0.3, 0.0, 0.0], size)        # congruent origin: same lattice
         sc.add_voxels(3, c, [0.0, 0.0, 5.03], 0.25)
-        in_embree = sc._routing()
+        in_embree = sc.tracer.routing
         if backend == "auto":
             assert in_embree == [False, False, True]
             assert len(sc.grids) == 1 and sc.grids[0].n_voxels == len(a) + len(b)
@@ -79,32 +79,33 @@ def test_planned_routing_weighs_embree_build_against_rays(monkeypatch):
     n = len(ijk)
     sc = Scene(voxel_backend="auto")
     sc.add_voxels(1, ijk, [0.0, 0.0, 0.0], 0.1)
-    assert sc._routing() == [True]                      # no plan: n <= EMBREE_VOXEL_LIMIT
+    assert sc.tracer.routing == [True]                  # no plan: n <= EMBREE_VOXEL_LIMIT
     lo, hi = sc.bounds()
     o, d = _rays(3000, np.random.default_rng(6), lo, hi)
     t_e, p_e, _ = sc.trace(o, d)
     # break-even: rays · 0.16 µs · (0.25/0.1)^0.6 = 1.25 · 6 µs · n
-    assert Scene._EMBREE_BUILD_S_PER_CUBE == 6e-6 and Scene._EMBREE_SAVES_S_PER_RAY == 0.16e-6
+    assert routing.EMBREE_BUILD_S_PER_CUBE == 6e-6 and routing.EMBREE_SAVES_S_PER_RAY == 0.16e-6
+    assert routing.EMBREE_BUILD_MARGIN == 1.25
     even = 1.25 * 6e-6 * n / (0.16e-6 * 2.5 ** 0.6)
     sc.plan_for_rays(0.9 * even)
-    assert sc._routing() == [False] and len(sc.grids) == 1
+    assert sc.tracer.routing == [False] and len(sc.grids) == 1
     t_g, p_g, _ = sc.trace(o, d)
     hit = np.isfinite(t_e)
     assert hit.mean() > 0.3 and np.array_equal(np.isfinite(t_g), hit) and (p_g == p_e).all()
     assert np.abs(t_g[hit] - t_e[hit]).max() < 1e-4
     sc.plan_for_rays(1.1 * even)
-    assert sc._routing() == [True] and sc.grids == []
+    assert sc.tracer.routing == [True] and sc.grids == []
     t_e2 = sc.trace(o, d)[0]
     assert np.abs(t_e2[hit] - t_e[hit]).max() < 1e-6
-    monkeypatch.setattr(Scene, "EMBREE_VOXEL_MAX", n - 1)
+    monkeypatch.setattr(routing, "EMBREE_VOXEL_MAX", n - 1)
     sc.plan_for_rays(1e12)
-    assert sc._routing() == [False]
+    assert sc.tracer.routing == [False]
     with pytest.raises(ConfigError, match="expected number of rays"):
         sc.plan_for_rays(float("nan"))
     fixed = Scene(voxel_backend="grid")
     fixed.add_voxels(1, ijk, [0.0, 0.0, 0.0], 0.1)
     fixed.plan_for_rays(1e12)
-    assert fixed._routing() == [False]
+    assert fixed.tracer.routing == [False]
 
 
 def test_simulate_plans_the_routing_from_the_survey():
@@ -126,14 +127,14 @@ def test_simulate_plans_the_routing_from_the_survey():
             "platform": {"type": "linear", "speed_mps": 5.0,
                          "legs": [{"start": [0.37, -length / 2, 60.0], "end": [0.37, length / 2, 60.0]}]}})
         res = simulate(sc, survey, seed=1, workers=1)
-        saves = res.timings["n_rays"] * Scene._EMBREE_SAVES_S_PER_RAY
-        build = Scene._EMBREE_BUILD_MARGIN * Scene._EMBREE_BUILD_S_PER_CUBE * len(ijk)
-        return sc._routing(), saves > build, res
+        saves = res.timings["n_rays"] * 0.16e-6
+        build = 1.25 * 6e-6 * len(ijk)
+        return sc.tracer.routing, saves > build, res
 
-    routing, pays, _ = run(2.0)
-    assert routing == [False] and not pays
-    routing, pays, res = run(30.0)
-    assert routing == [True] and pays
+    in_embree, pays, _ = run(2.0)
+    assert in_embree == [False] and not pays
+    in_embree, pays, res = run(30.0)
+    assert in_embree == [True] and pays
     grid = run(30.0, "grid")[2]
     a, b = res.points["xyz"], grid.points["xyz"]
     assert len(a) > 100000 and abs(len(a) - len(b)) <= 1e-4 * len(b)
@@ -169,7 +170,7 @@ def test_random_shift_stays_in_cell(tmp_path):
                       "seed": 4}]}
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(cfg))
     sc = Scene.from_yaml(tmp_path / "s.yaml")
-    v = sc._voxelsets[0]
+    v = sc.geometry.voxels[0]
     lo = (v.ijk * 0.25)
     assert ((v.centre - v.half[:, None]) >= lo - 1e-12).all()
     assert ((v.centre + v.half[:, None]) <= lo + 0.25 + 1e-12).all()
@@ -230,7 +231,7 @@ def test_restyled_scene_shares_geometry_changes_energy():
     v = np.array([[-5, -5, 3], [5, -5, 3], [5, 5, 3], [-5, 5, 3]], float)
     sc.add_mesh(2, v, [[0, 1, 2], [0, 2, 3]], Material(0.4))
     other = sc.restyled({2: Material(0.1)})
-    assert other._embree is sc._embree  # the BVH is shared
+    assert other.tracer.embree is sc.tracer.embree  # the BVH is shared
     assert sc.parts[1].material.reflectance == 0.4  # the original is unchanged
     sv = survey_from_dict({"scanner": "riegl_vq780i", "overrides": {"prf_hz": 5000, "scan_freq_hz": 10,
                           "scan_angle_deg": 10.0, "max_scan_angle_deg": 10.0, "range_min_m": 0.0},
@@ -242,6 +243,32 @@ def test_restyled_scene_shares_geometry_changes_energy():
     assert np.allclose(b.points["amplitude"][on] / a.points["amplitude"][on], 0.25, rtol=1e-5)
     with pytest.raises(ConfigError):
         sc.restyled({99: Material(0.1)})
+
+
+def test_restyled_copy_plans_and_grows_on_its_own():
+    """A restyled copy starts from the original's built grid; planning for other rays or adding
+    a part changes the one it is done to, and the other keeps its routing, parts and hits."""
+    from vlsforest.sim import Material
+
+    rng = np.random.default_rng(8)
+    ijk = np.unique(rng.integers(0, 10, size=(300, 3)), axis=0)
+    sc = Scene(voxel_backend="auto")
+    sc.add_plane(1, -1.0, (-5, -5, 5, 5))
+    sc.add_voxels(2, ijk, [0.0, 0.0, 0.0], 0.1)
+    sc.plan_for_rays(1.0)  # one ray never repays an Embree build: the grid
+    lo, hi = sc.bounds()
+    o, d = _rays(2000, np.random.default_rng(9), lo, hi)
+    before = sc.trace(o, d)
+    other = sc.restyled({2: Material(0.1)})
+    assert other.tracer.routing == [False] and other.grids[0] is sc.grids[0]
+    other.plan_for_rays(1e12)  # many rays: Embree
+    assert other.tracer.routing == [True] and other.grids == []
+    assert sc.tracer.routing == [False] and len(sc.grids) == 1
+    other.add_mesh(3, [[-1, -1, 2.0], [1, -1, 2.0], [0, 1, 2.0]], [[0, 1, 2]])
+    assert [p.object_id for p in other.parts] == [1, 2, 3] and other.n_triangles == 1
+    assert [p.object_id for p in sc.parts] == [1, 2] and sc.n_triangles == 0
+    for a, b in zip(sc.trace(o, d), before):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_one_worker_traces_the_grid_on_one_cpu(monkeypatch):

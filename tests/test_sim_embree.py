@@ -64,7 +64,7 @@ def test_scene_sets_embree_robust_flag(robust):
     sc = Scene(embree_robust=robust)
     sc.add_mesh(1, np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]))
     sc.prepare()
-    assert _flags(sc._embree) == (4 if robust else 0)
+    assert _flags(sc.tracer.embree) == (4 if robust else 0)
     t, part, _ = sc.trace(np.array([[0.25, 0.25, 3.0]]), np.array([[0.0, 0.0, -1.0]]))
     assert t[0] == pytest.approx(3.0) and part[0] == 0
 
@@ -152,15 +152,20 @@ def test_scene_handle_check_rejects_a_wrong_layout(monkeypatch):
 def test_voxel_cubes_go_to_embree_in_pieces_with_the_same_bits(monkeypatch):
     """Cube triangles written piece by piece into Embree's buffers give the BVH (and hits) of
     the whole lattice's triangles copied by embreex; half size 0 drops a scaled cube."""
-    from vlsforest.sim import scene as scene_mod
+    from vlsforest.sim.scene_geometry import VoxelGeometry
 
     rng = np.random.default_rng(4)
     ijk = np.unique(rng.integers(0, 60, (90000, 3)), axis=0)
     half = rng.uniform(0.0, 0.05, len(ijk))
     half[::7] = 0.0
-    sc = Scene(voxel_backend="embree")
-    sc.add_voxels(1, ijk, [1.0, 2.0, 3.0], 0.1)
-    sc.add_voxels(2, ijk[:5000] + [0, 0, 70], [1.0, 2.0, 3.0], 0.1, half=half[:5000])
+
+    def build():
+        sc = Scene(voxel_backend="embree")
+        sc.add_voxels(1, ijk, [1.0, 2.0, 3.0], 0.1)
+        sc.add_voxels(2, ijk[:5000] + [0, 0, 70], [1.0, 2.0, 3.0], 0.1, half=half[:5000])
+        return sc
+
+    sc = build()
     lo, hi = sc.bounds()
     o = np.column_stack([rng.uniform(lo[0], hi[0], 100000), rng.uniform(lo[1], hi[1], 100000),
                          np.full(100000, hi[2] + 1.0)])
@@ -169,13 +174,10 @@ def test_voxel_cubes_go_to_embree_in_pieces_with_the_same_bits(monkeypatch):
     new = sc.trace(o, d)
     assert (new[1] == 1).sum() > 5000 and (new[1] == 0).sum() > 5000  # both parts hit
     chunks = []
-    real = scene_mod._cube_triangle_chunks
-    monkeypatch.setattr(scene_mod, "_cube_triangle_chunks",
+    real = VoxelGeometry.triangle_chunks
+    monkeypatch.setattr(VoxelGeometry, "triangle_chunks",
                         lambda v, shift: chunks.append(1) or real(v, shift, chunk=4096))
-    small = Scene(voxel_backend="embree")
-    small.__dict__.update({k: val for k, val in sc.__dict__.items() if k != "_embree"})
-    small._embree = None
-    np.testing.assert_array_equal(small.trace(o, d)[0], new[0])
+    np.testing.assert_array_equal(build().trace(o, d)[0], new[0])
     assert len(chunks) == 2
     # the reference: the whole lattice's triangles at once, copied by embreex
     monkeypatch.setattr(_embree, "_api", False)
@@ -187,11 +189,8 @@ def test_voxel_cubes_go_to_embree_in_pieces_with_the_same_bits(monkeypatch):
         verts, faces = cube_triangles(centre, h)
         return [((verts - shift).astype(np.float32), faces.astype(np.int32))]
 
-    monkeypatch.setattr(scene_mod, "_cube_triangle_chunks", whole)
-    old = Scene(voxel_backend="embree")
-    old.__dict__.update({k: val for k, val in sc.__dict__.items() if k != "_embree"})
-    old._embree = None
-    for a, b in zip(old.trace(o, d), new):
+    monkeypatch.setattr(VoxelGeometry, "triangle_chunks", whole)
+    for a, b in zip(build().trace(o, d), new):
         np.testing.assert_array_equal(a, b)
 
 

@@ -1,4 +1,4 @@
-"""Embree scenes for :class:`vlsforest.sim.scene.Scene`: scene flags and a fast geometry upload.
+"""Embree scenes for :mod:`vlsforest.sim.tracing`: scene flags and a fast geometry upload.
 
 embreex (the project's Embree binding) creates scenes with Embree's *robust* flag on and copies
 triangle buffers into Embree element by element through Python indexing, about 15 µs per cube
