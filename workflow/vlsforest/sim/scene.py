@@ -16,44 +16,20 @@ The work is shared out:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.sim._voxelgrid import VoxelGrid
-from vlsforest.sim.scene_geometry import MeshGeometry, PlaneGeometry, SceneGeometry, VoxelGeometry
+from vlsforest.sim.scene_file import build_scene, load_scene
+from vlsforest.sim.scene_geometry import (
+    Material,
+    MeshGeometry,
+    PlaneGeometry,
+    SceneGeometry,
+    ScenePart,
+    VoxelGeometry,
+)
 from vlsforest.sim.tracing import Tracer
-
-
-@dataclass(frozen=True)
-class Material:
-    """Surface material of a scene part.
-
-    Attributes
-    ----------
-    reflectance : float
-        Reflectance at the scanner wavelength, fraction 0–1.
-    specularity : float
-        Phong specular share ks (0 = Lambertian).
-    shininess : float
-        Phong exponent.
-    """
-
-    reflectance: float = 0.5
-    specularity: float = 0.0
-    shininess: float = 10.0
-
-
-@dataclass
-class ScenePart:
-    """One part of a scene: its object id, kind, material and LAS class."""
-
-    object_id: int
-    kind: str
-    material: Material = field(default_factory=Material)
-    classification: int = 1
-    name: str = ""
 
 
 class Scene:
@@ -171,15 +147,11 @@ class Scene:
         ``voxel_transform`` (optional) maps each voxel model read from an ``.npz`` part to the
         model that is added instead (e.g. a correction of the reconstruction).
         """
-        from vlsforest.sim.scene_file import load_scene  # the reader builds Scenes: imported on use
-
         return load_scene(path, cls, voxel_transform=voxel_transform)
 
     @classmethod
     def from_dict(cls, cfg: dict, base_dir=".", source: str = "scene", voxel_transform=None) -> "Scene":
         """Build a scene from a parsed SCENE.yaml mapping (``voxel_transform``: see :meth:`from_yaml`)."""
-        from vlsforest.sim.scene_file import build_scene
-
         return build_scene(cfg, cls, base_dir=base_dir, source=source, voxel_transform=voxel_transform)
 
     def restyled(self, materials: dict) -> "Scene":

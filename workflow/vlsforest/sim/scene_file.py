@@ -49,7 +49,7 @@ import numpy as np
 from vlsforest.domain.cubes import scaled_cubes
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.voxel_model import VoxelModel
-from vlsforest.sim.scene import Material
+from vlsforest.sim.scene_geometry import Material
 
 #: the keys of each part type besides :data:`COMMON_KEYS`
 PART_KEYS = {

@@ -1,4 +1,5 @@
-"""The geometry of a scene's parts: bounded ground planes, triangle meshes and voxel sets.
+"""The parts of a scene: their materials and geometry (bounded ground planes, triangle meshes and
+voxel sets).
 
 Each record names the scene part it belongs to (its index in
 :attr:`vlsforest.sim.scene.Scene.parts`) and holds the arrays the tracing structures are built
@@ -8,11 +9,41 @@ and answers what the whole geometry is: its bounds, its numbers of cubes and tri
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from vlsforest.domain.cubes import cube_triangles
+
+@dataclass(frozen=True)
+class Material:
+    """Surface material of a scene part.
+
+    Attributes
+    ----------
+    reflectance : float
+        Reflectance at the scanner wavelength, fraction 0–1.
+    specularity : float
+        Phong specular share ks (0 = Lambertian).
+    shininess : float
+        Phong exponent.
+    """
+
+    reflectance: float = 0.5
+    specularity: float = 0.0
+    shininess: float = 10.0
+
+
+@dataclass
+class ScenePart:
+    """One part of a scene: its object id, kind, material and LAS class."""
+
+    object_id: int
+    kind: str
+    material: Material = field(default_factory=Material)
+    classification: int = 1
+    name: str = ""
+
 
 #: the two triangles of a plane's rectangle, over the corners of :meth:`PlaneGeometry.corners`
 PLANE_FACES = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
