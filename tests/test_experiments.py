@@ -73,6 +73,10 @@ def test_finer_step_fills_more_fine_cells(tmp_path):
         assert 0 < rec["fill"]["0.02"] < rec["fill"]["0.1"]
         (group,) = rec["groups"].values()
         assert group["n_trees"] == 1 and group["cells"] == rec["cells"]
+        # one CoG offset per filled 0.25 m cell, each within half a cell of its centre
+        cog = rec["cog_offset"]
+        assert cog["n_cells"] == rec["cells"]["0.25"] and group["cog_offset"] == cog
+        assert abs(cog["z_m"]) < 0.125 and abs(cog["radial_m"]) < 0.125 and cog["z_se_m"] > 0
     # a finer step fills more of the crown with small cells
     assert fine["fill"]["0.02"] > coarse["fill"]["0.02"]
 
@@ -127,3 +131,18 @@ def test_fill_is_the_volume_share_of_the_coarse_cells():
 def test_run_rejects_bad_cell_sizes():
     with pytest.raises(ConfigError, match="cells_m"):
         tls_step.run_tls_step({"forest": {"preset": "quick"}}, "Q1", [0.5], cells_m=[0.1, 0.0])
+
+
+def test_cog_offsets_vertical_and_radial():
+    # cell (0, 0, 0) of 0.25 m, centre (0.125, 0.125, 0.125): two points low in the cell and towards
+    # +x; the stem axis at x = -10 lies on the -x side, so +x is outward
+    xyz = np.array([[0.20, 0.125, 0.05], [0.20, 0.125, 0.07]])
+    off = tls_step.cog_offsets(xyz, (-10.0, 0.125))
+    assert off.shape == (1, 2)
+    assert off[0, 0] == pytest.approx(0.06 - 0.125)       # centroid z 0.06
+    assert off[0, 1] == pytest.approx(0.20 - 0.125)       # outward along +x
+    # seen from an axis at x = +10 the same offset points inward
+    assert tls_step.cog_offsets(xyz, (10.0, 0.125))[0, 1] == pytest.approx(-(0.20 - 0.125))
+    # a cell centred on the axis has no radial direction
+    assert tls_step.cog_offsets(xyz, (0.125, 0.125))[0, 1] == 0.0
+    assert tls_step.cog_offsets(np.zeros((0, 3)), (0, 0)).shape == (0, 2)

@@ -606,3 +606,27 @@ def test_f3b_cause_from_the_groups_fill_contrast():
     assert f["F3b"]["cause"].endswith("0.05 m, 0.1 m, 0.25 m: not established")
     f, _ = _findings(m, vc, tt, experiments=_fill_experiment(contrast_002=((1.1, 1.0), (2.0, 1.0))))
     assert f["F3b"]["cause"].startswith("not established")
+
+
+def _cog_experiment(z_fine=-0.03, z_se=0.002, radial_fine=0.0):
+    steps = [{"step_deg": 0.1, "ratio": 5.0, "cog_offset": {"n_cells": 900, "z_m": 0.0, "z_se_m": z_se,
+                                              "radial_m": 0.0, "radial_se_m": z_se}},
+             {"step_deg": 0.017, "ratio": 30.0, "cog_offset": {"n_cells": 1500, "z_m": z_fine, "z_se_m": z_se,
+                                                "radial_m": radial_fine, "radial_se_m": z_se}}]
+    return {"tls_step": {"plot": "P3", "n_trees": 5, "steps": steps}}
+
+
+def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
+    m, vc, tt = study_like(flip=True)  # the CoG shift raises everything: F4 disagrees in every part
+    f, _ = _findings(m, vc, tt)
+    assert f["F4"]["verdict"] == "disagrees" and "not run" in f["F4"]["experiment"]
+    # -3.0 ± 0.2 cm at 0.017° against 0.0 ± 0.2 cm at 0.1°: lower by far more than twice the errors
+    f, _ = _findings(m, vc, tt, experiments=_cog_experiment())
+    cause = f["F4"]["cause"]
+    assert cause.startswith("the TLS angular step") and "als hmean" in cause and "uls height" in cause
+    assert "not established for" in cause and "multi_return_pct" in cause.split("not established for")[1]
+    assert "cpa" in cause.split("not established for")[1]  # the radial offset stays 0
+    assert "-3.0 ± 0.2 cm vertically" in f["F4"]["experiment"]
+    # an offset within twice its standard error explains nothing: -0.3 cm ± 0.2 cm
+    f, _ = _findings(m, vc, tt, experiments=_cog_experiment(z_fine=-0.003))
+    assert f["F4"]["cause"].startswith("not established")

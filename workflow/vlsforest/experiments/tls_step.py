@@ -27,9 +27,14 @@ more small cells in the same crown, so a fixed model of a given size is more opa
 study's step than at the embedded forest's; the fill per species group shows whether the
 porosity contrast between conifers and broadleaf trees survives the finer step.
 
+The returns in each filled 0.25 m cell also give the cell's centre of gravity, which the
+study's CoG shift moves the cell's scaled cube towards (:func:`vlsforest.voxels.shift_cubes`):
+its mean offset from the cell centre, vertically and radially (horizontally, away from the
+tree's stem axis), says in which direction the CoG shift moves the crown at either step.
+
 The result (:func:`run_tls_step`) is a JSON document with, per step, the returns and the filled
-cells of every grid summed over the trees, the 0.02 / 0.25 m ratio and the fill per cell size
-(all trees and per species group), and the same per tree.
+cells of every grid summed over the trees, the 0.02 / 0.25 m ratio, the fill per cell size and
+the centre-of-gravity offset (all trees and per species group), and the same per tree.
 """
 
 from __future__ import annotations
@@ -45,8 +50,9 @@ from vlsforest.sim.scanner import PRESETS
 from vlsforest.sim.survey import survey_from_dict
 from vlsforest.synth.forest import forest_from_config, generate_plot_trees
 from vlsforest.synth.record import DEFAULT_RECORDING_PHYSICS, physics_overrides, plot_scene, synth_settings, tls_positions
+from vlsforest.voxels import cell_centroids
 
-__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "cell_key", "filled_cells", "fill",
+__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "cell_key", "cog_offsets", "filled_cells", "fill",
            "tree_fov", "run_tls_step"]
 
 #: cell of the study's finest fixed voxels (m)
@@ -106,6 +112,38 @@ def fill(n_cells: float, cell: float, n_coarse: float, coarse: float = COARSE_CE
     if not n_coarse:
         return math.nan
     return float(n_cells) * float(cell) ** 3 / (float(n_coarse) * float(coarse) ** 3)
+
+
+def cog_offsets(xyz: np.ndarray, axis_xy, cell: float = COARSE_CELL_M) -> np.ndarray:
+    """Offset of each filled cell's centre of gravity from the cell centre, vertically and radially.
+
+    Parameters
+    ----------
+    xyz : ndarray (n, 3)
+        Points.
+    axis_xy : sequence of 2 floats
+        Horizontal position of the tree's stem axis.
+    cell : float
+        Cell size (m) of a grid anchored at the origin.
+
+    Returns
+    -------
+    ndarray (k, 2)
+        Per filled cell (in :func:`filled_cells` order): the vertical offset (m; negative: the
+        points lie low in the cell) and the radial one (m; the horizontal offset along the
+        direction from the axis to the cell centre; negative: towards the axis). A cell whose
+        centre lies on the axis has radial offset 0.
+    """
+    cells = filled_cells(xyz, cell)
+    if len(cells) == 0:
+        return np.zeros((0, 2))
+    centre = (cells + 0.5) * cell
+    d = cell_centroids(xyz, cell, cells) - centre
+    out_dir = centre[:, :2] - np.asarray(axis_xy, float)[:2]
+    norm = np.hypot(out_dir[:, 0], out_dir[:, 1])
+    radial = np.where(norm > 0, (d[:, 0] * out_dir[:, 0] + d[:, 1] * out_dir[:, 1]) / np.where(norm > 0, norm, 1.0),
+                      0.0)
+    return np.column_stack([d[:, 2], radial])
 
 
 def tree_fov(position, corners: np.ndarray, v_limits) -> dict | None:
@@ -190,10 +228,12 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     -------
     dict
         ``plot``, ``seed``, ``steps`` (per step: ``step_deg``, ``n_returns``, ``cells_fine``,
-        ``cells_coarse``, ``ratio``, ``cells`` and ``fill`` per cell size (:func:`cell_key`), and
-        ``groups``: per species group its ``n_trees``, ``cells`` and ``fill``), ``trees`` (per tree
-        its species, group and per step the same but ``groups``), ``n_trees``, ``n_positions``, the
-        cell sizes and the method in words.
+        ``cells_coarse``, ``ratio``, ``cells`` and ``fill`` per cell size (:func:`cell_key`),
+        ``cog_offset`` (the filled 0.25 m cells' mean centre-of-gravity offset, :func:`cog_offsets`:
+        ``n_cells``, ``z_m``, ``z_se_m``, ``radial_m``, ``radial_se_m``, the means and their
+        standard errors), and ``groups``: per species group its ``n_trees``, ``cells``, ``fill``
+        and ``cog_offset``), ``trees`` (per tree its species, group and per step the same but
+        ``groups``), ``n_trees``, ``n_positions``, the cell sizes and the method in words.
 
     Raises
     ------
@@ -227,6 +267,8 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     per_tree = []
     totals = {s: {"n_returns": 0, "cells": dict.fromkeys(map(cell_key, sizes), 0)} for s in steps}
     by_group: dict = {}
+    offsets = {s: [] for s in steps}  # per step: the cells' CoG offsets of every tree
+    group_offsets: dict = {}
     for tid in targets:
         g = geoms[tid]
         v = g.vertices
@@ -251,7 +293,11 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
                 pts.append(xyz_k[sel])
             xyz = np.concatenate(pts) if pts else np.zeros((0, 3))
             cells = {cell_key(c): int(len(filled_cells(xyz, c))) for c in sizes}
+            off = cog_offsets(xyz, g.position[:2])
+            offsets[step].append(off)
+            group_offsets.setdefault(step, {}).setdefault(group, []).append(off)
             rec = _step_record(step, len(xyz), cells)
+            rec["cog_offset"] = _offset_summary([off])
             row["steps"].append(rec)
             totals[step]["n_returns"] += rec["n_returns"]
             grp = by_group.setdefault(step, {}).setdefault(group, {"n_trees": 0, "cells": dict.fromkeys(cells, 0)})
@@ -266,8 +312,10 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     out_steps = []
     for s in steps:
         rec = _step_record(s, totals[s]["n_returns"], totals[s]["cells"])
-        rec["groups"] = {g: {"n_trees": v["n_trees"], "cells": v["cells"],
-                             "fill": _fills(v["cells"])} for g, v in sorted(by_group.get(s, {}).items())}
+        rec["cog_offset"] = _offset_summary(offsets[s])
+        rec["groups"] = {g: {"n_trees": v["n_trees"], "cells": v["cells"], "fill": _fills(v["cells"]),
+                             "cog_offset": _offset_summary(group_offsets[s][g])}
+                         for g, v in sorted(by_group.get(s, {}).items())}
         out_steps.append(rec)
     return {
         "experiment": "tls_step",
@@ -297,3 +345,15 @@ def _step_record(step: float, n_returns: int, cells: dict) -> dict:
     nf, nc = cells[cell_key(FINE_CELL_M)], cells[cell_key(COARSE_CELL_M)]
     return {"step_deg": float(step), "n_returns": int(n_returns), "cells_fine": int(nf), "cells_coarse": int(nc),
             "ratio": nf / nc if nc else math.nan, "cells": dict(cells), "fill": _fills(cells)}
+
+
+def _offset_summary(parts: list) -> dict:
+    """Mean and standard error of the cells' vertical and radial CoG offsets (:func:`cog_offsets`)."""
+    off = np.concatenate(parts) if parts else np.zeros((0, 2))
+    n = len(off)
+    out = {"n_cells": int(n)}
+    for k, name in enumerate(("z", "radial")):
+        v = off[:, k]
+        out[f"{name}_m"] = float(v.mean()) if n else math.nan
+        out[f"{name}_se_m"] = float(v.std(ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    return out
