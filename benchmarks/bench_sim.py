@@ -174,8 +174,8 @@ def raw_cast(scene, survey, block_slots: int = 20000, repeat: int = 2):
     from vlsforest.sim.beam import subray_directions, subray_pattern
     from vlsforest.sim.engine import DetectorOptions, _beam_meets_box
 
-    sc = survey.scanner
-    pat = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad, sc.beam_orientation_deg,
+    beam = survey.scanner.beam
+    pat = subray_pattern(beam.sample_quality, beam.divergence_mrad, beam.orientation_deg,
                          ring_scale=DetectorOptions.from_dict(survey.detector).ring_scale)
     max_off = float(np.abs(pat.offsets).max()) * np.sqrt(2.0)  # as the engine
     lo, hi = scene.bounds()
@@ -279,8 +279,9 @@ def run_case(case: str, profile: bool = False, repeat: int = 2) -> dict:
     t_setup = time.perf_counter() - t0
     sc = survey.scanner
     print(f"  {desc}")
-    print(f"  scanner {sc.name}: {sc.prf_hz / 1e3:.0f} kHz, {sc.scan_freq_hz:.0f} lines/s, ±{sc.scan_angle_deg:.0f}°, "
-          f"BSQ {sc.beam_sample_quality}, window {sc.window_size_ns} ns; {survey.n_slots:,} pulse slots; "
+    print(f"  scanner {sc.name}: {sc.emitter.prf_hz / 1e3:.0f} kHz, {sc.deflector.scan_freq_hz:.0f} lines/s, "
+          f"±{sc.deflector.scan_angle_deg:.0f}°, BSQ {sc.beam.sample_quality}, "
+          f"window {sc.detector.window_size_ns} ns; {survey.n_slots:,} pulse slots; "
           f"setup {t_setup:.1f} s; peak RSS after setup {_rss_gb():.2f} GB")
     # warm-up over the tree, with the serial (one worker) and the parallel grid kernel (numba
     # compilation is cached on disk but loaded per process; the Embree BVH is built lazily per

@@ -457,7 +457,7 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
     traced = []
 
     def fake_trace_hits(scene, survey, **kw):
-        traced.append(survey.scanner.beam_divergence_mrad)
+        traced.append(survey.scanner.beam.divergence_mrad)
         return {"slot": np.arange(3)}, {"pulse": np.zeros(4, np.int32)}
 
     monkeypatch.setattr(vsim, "trace_hits", fake_trace_hits)
@@ -475,7 +475,7 @@ def test_trace_cache_merges_equal_settings_and_keeps_the_pinned_baseline(monkeyp
     ps.trace(div(3.0))
     ps.trace(div(2.0))
     assert ps.n_traced == 5 and len(ps.traces) == 2
-    base = np.array(vsim.survey_from_dict(ps.survey).scanner.beam_divergence_mrad)
+    base = np.array(vsim.survey_from_dict(ps.survey).scanner.beam.divergence_mrad)
     assert traced == [tuple(base), tuple(2 * base), tuple(3 * base), tuple(2 * base), tuple(3 * base)]
 
 
@@ -490,7 +490,7 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     traced = []
 
     def fake_trace_hits(scene, survey, **kw):
-        scale = survey.scanner.beam_divergence_mrad[0]
+        scale = survey.scanner.beam.divergence_mrad[0]
         traced.append(scale)
         rng = np.random.default_rng(int(scale * 1e6))
         pulses = {"slot": np.arange(5, dtype=np.int64), "origin": rng.normal(size=(5, 3))}
@@ -573,12 +573,12 @@ def test_diagnosis_can_sample_the_beam_more_finely_than_the_survey(tmp_path):
     assert resampled(survey, None) is survey
     fine = resampled(survey, 5)
     sc = survey_from_dict(fine).scanner
-    assert sc.beam_sample_quality == 5 and sc.window_size_ns == 1.5
+    assert sc.beam.sample_quality == 5 and sc.detector.window_size_ns == 1.5
     assert survey["overrides"]["beam_sample_quality"] == 3
     # 61 sub-rays instead of 19, whose rings reach 4/5 instead of 2/3 of the beam extent
     from vlsforest.sim.beam import subray_pattern
 
-    pat = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad)
+    pat = subray_pattern(sc.beam.sample_quality, sc.beam.divergence_mrad)
     assert pat.n == 61 and pat.frac.max() == pytest.approx(0.8)
     cfg = tmp_path / "s.yaml"
     cfg.write_text(yaml.safe_dump({"scenario": "uls", "beam_sample_quality": 5,
@@ -610,7 +610,7 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
         p = PlotInput("Q1", workdir / "results" / "forest" / "plots" / "Q1" / "uls.laz",
                            res / "scaled" / "scene" / "scene.yaml", quiet, res / "segment", 0.3, margin)
         ps = PlotSim(p, 0, 2, lambda m: None)
-        assert ps.setting({})[1].scanner.range_noise_m == 0
+        assert ps.setting({})[1].scanner.detector.range_noise_m == 0
         # its trajectory-noise realisation is its own, not the survey file's (the recording's)
         assert ps.survey["seed"] == own_realisation(survey, 0)["seed"]
         pulses, _ = ps.trace({})

@@ -394,7 +394,7 @@ def test_real_beam_footprint_has_the_datasheet_diameter(scanner, convention, dat
     sv = _survey(ov, _line(-0.5, 0.5, h), scanner=scanner)
     pulses, hits = trace_hits(sc, sv, workers=1)
     s = sv.scanner
-    pat = subray_pattern(s.beam_sample_quality, s.beam_divergence_mrad, s.beam_orientation_deg)
+    pat = subray_pattern(s.beam.sample_quality, s.beam.divergence_mrad, s.beam.orientation_deg)
     assert pat.n == 271 and len(pulses["slot"]) >= 3
     dirs = subray_directions(pulses["direction"], pulses["scan_dir"], pat)
     p, k = hits["pulse"], hits["subray"]
@@ -404,9 +404,10 @@ def test_real_beam_footprint_has_the_datasheet_diameter(scanner, convention, dat
     along = np.einsum("ij,ij->i", xyz - centre, pulses["scan_dir"][p])   # the major axis (orientation 0)
     across = np.einsum("ij,ij->i", xyz - centre, np.cross(pulses["direction"][p], pulses["scan_dir"][p]))
     energy = hit_energy(hits["range"], k, hits["cos_inc"], hits["part"], pat.frac, np.array([30.0]),
-                        np.array([0.0]), np.array([10.0]), pat.n, average_power_w=s.average_power_w,
-                        receiver_diameter_m=s.receiver_diameter_m, optical_efficiency=s.optical_efficiency,
-                        range0=s.range_min_m, m2=s.beam_quality_factor)
+                        np.array([0.0]), np.array([10.0]), pat.n, average_power_w=s.emitter.average_power_w,
+                        receiver_diameter_m=s.detector.receiver_diameter_m,
+                        optical_efficiency=s.detector.optical_efficiency, range0=s.detector.range_min_m,
+                        m2=s.beam.quality_factor)
     # ln E = c − 2 x²/wx² − 2 y²/wy²: least squares for the 1/e² radii
     a = np.column_stack([np.ones(len(energy)), along ** 2, across ** 2])
     coef = np.linalg.lstsq(a, np.log(energy), rcond=None)[0]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -12,13 +14,17 @@ from vlsforest.errors import ConfigError
 from vlsforest.sim.deflector import deflect, tls_grid
 from vlsforest.sim.pulses import PulseBatch
 from vlsforest.sim.scanner import (
+    FLAT_KEYS,
+    INPUT_KEYS,
     PRESETS,
     REAL_BEAMS,
+    ScannerSettings,
     datasheet_divergence,
     emission_half_angle_deg,
     fwhm_to_1e2,
     scanner_from_dict,
     scanner_from_preset,
+    input_key,
     validate_scanner,
 )
 from vlsforest.sim.survey import load_survey, survey_from_dict
@@ -73,18 +79,23 @@ def test_presets_load_and_validate():
         assert scanner_from_preset(name) == preset
         assert scanner_from_preset(name, {}) == preset
     vq = PRESETS["riegl_vq780i"]
-    assert (vq.deflector, vq.prf_hz, vq.scan_freq_hz, vq.scan_angle_deg) == ("polygon", 1e6, 250.0, 30.0)
+    assert vq.emitter.prf_hz == 1e6
+    assert (vq.deflector.kind, vq.deflector.scan_freq_hz, vq.deflector.scan_angle_deg) == ("polygon", 250.0, 30.0)
     # HELIOS++ 1.0.8's riegl_vq_780i: scanAngleMax 45°, scanAngleEffectiveMax 30°, accuracy 0.02 m
-    assert (vq.max_scan_angle_deg, vq.effective_max_scan_angle_deg, vq.range_noise_m) == (45.0, 30.0, 0.02)
-    assert vq.beam_divergence_mrad == (0.25, 0.25) and vq.window_size_ns == 1.75
+    assert (vq.deflector.max_scan_angle_deg, vq.deflector.effective_max_scan_angle_deg) == (45.0, 30.0)
+    assert vq.detector.range_noise_m == 0.02
+    assert vq.beam.divergence_mrad == (0.25, 0.25) and vq.detector.window_size_ns == 1.75
     uls = PRESETS["riegl_minivux1uav"]
-    assert (uls.deflector, uls.prf_hz, uls.scan_freq_hz, uls.max_scan_angle_deg) == ("rotating", 1e5, 50.0, 180.0)
-    assert uls.beam_divergence_mrad == (0.5, 0.5) and uls.window_size_ns == 1.5 and uls.range_noise_m == 0.015
+    assert uls.emitter.prf_hz == 1e5
+    d = uls.deflector
+    assert (d.kind, d.scan_freq_hz, d.max_scan_angle_deg) == ("rotating", 50.0, 180.0)
+    assert uls.beam.divergence_mrad == (0.5, 0.5)
+    assert uls.detector.window_size_ns == 1.5 and uls.detector.range_noise_m == 0.015
     tls = PRESETS["riegl_vz400"]
-    assert tls.deflector == "tls" and tls.tls_v_fov_deg == (-40.0, 60.0) and tls.tls_h_fov_deg == (0.0, 360.0)
+    assert tls.deflector.kind == "tls" and tls.tls.v_fov_deg == (-40.0, 60.0) and tls.tls.h_fov_deg == (0.0, 360.0)
     # the VZ-400 datasheet: 0.35 mrad full angle at 1/e², 7 mm exit diameter, 5 mm accuracy
-    assert 2 * tls.beam_divergence_mrad[0] == pytest.approx(0.35) and tls.beam_exit_diameter_m == 0.007
-    assert tls.range_noise_m == 0.005
+    assert 2 * tls.beam.divergence_mrad[0] == pytest.approx(0.35) and tls.beam.exit_diameter_m == 0.007
+    assert tls.detector.range_noise_m == 0.005
 
 
 def test_vq780i_emits_two_thirds_of_its_prf():
@@ -111,12 +122,12 @@ def test_datasheet_divergences_are_stored_as_the_half_angle():
     # 1.6 × 0.5 mrad at 50 % peak intensity = 2.718 × 0.849 mrad at 1/e², halved
     assert (major, minor) == pytest.approx((2.718 / 2, 0.849 / 2), abs=1e-3)
     s = scanner_from_preset("riegl_minivux1uav", {"beam_divergence_fwhm_mrad": [1.6, 0.5]})
-    assert s.beam_divergence_mrad == pytest.approx((major, minor))
+    assert s.beam.divergence_mrad == pytest.approx((major, minor))
     s = scanner_from_preset("riegl_vq780i", {"beam_divergence_full_1e2_mrad": 0.25})
-    assert s.beam_divergence_mrad == (0.125, 0.125)
-    assert datasheet_divergence(**REAL_BEAMS["riegl_vz400"]) == pytest.approx(PRESETS["riegl_vz400"].beam_divergence_mrad)
+    assert s.beam.divergence_mrad == (0.125, 0.125)
+    assert datasheet_divergence(**REAL_BEAMS["riegl_vz400"]) == pytest.approx(PRESETS["riegl_vz400"].beam.divergence_mrad)
     spec = {k: v for k, v in custom("conic").items() if k != "beam_divergence_mrad"}
-    assert scanner_from_dict(spec | {"beam_divergence_full_1e2_mrad": 1.0}).beam_divergence_mrad == (0.5, 0.5)
+    assert scanner_from_dict(spec | {"beam_divergence_full_1e2_mrad": 1.0}).beam.divergence_mrad == (0.5, 0.5)
     with pytest.raises(ConfigError, match="once"):
         scanner_from_preset("riegl_vq780i", {"beam_divergence_mrad": 0.2, "beam_divergence_fwhm_mrad": 0.2})
     with pytest.raises(ConfigError, match=r"overrides\.beam_divergence_fwhm_mrad"):
@@ -134,10 +145,87 @@ def test_fwhm_to_1e2_matches_a_numeric_gaussian():
 
 def test_overrides_are_coerced():
     s = scanner_from_preset("riegl_vq780i", {"beam_divergence_mrad": 0.4, "prf_hz": 500_000, "max_returns": 5})
-    assert s.beam_divergence_mrad == (0.4, 0.4) and isinstance(s.prf_hz, float) and s.max_returns == 5
+    assert s.beam.divergence_mrad == (0.4, 0.4) and isinstance(s.emitter.prf_hz, float)
+    assert s.detector.max_returns == 5
     s = scanner_from_preset("riegl_minivux1uav", {"beam_divergence_mrad": [1.6, 0.5], "beam_orientation_deg": 90})
-    assert s.beam_divergence_mrad == (1.6, 0.5) and s.beam_orientation_deg == 90.0
+    assert s.beam.divergence_mrad == (1.6, 0.5) and s.beam.orientation_deg == 90.0
     hash(s)  # stays hashable
+
+
+#: every overridable flat key: a valid value that differs from the VZ-400 preset's, and where
+#: the settings' records hold it
+FLAT_OVERRIDES = {
+    "prf_hz": (123_000.0, lambda s: s.emitter.prf_hz),
+    "wavelength_nm": (905.0, lambda s: s.emitter.wavelength_nm),
+    "pulse_length_ns": (3.5, lambda s: s.emitter.pulse_length_ns),
+    "average_power_w": (2.5, lambda s: s.emitter.average_power_w),
+    "scan_freq_hz": (33.0, lambda s: s.deflector.scan_freq_hz),
+    "scan_angle_deg": (20.0, lambda s: s.deflector.scan_angle_deg),
+    "max_scan_angle_deg": (40.0, lambda s: s.deflector.max_scan_angle_deg),
+    "effective_max_scan_angle_deg": (30.0, lambda s: s.deflector.effective_max_scan_angle_deg),
+    "beam_divergence_mrad": ((0.4, 0.3), lambda s: s.beam.divergence_mrad),
+    "beam_orientation_deg": (15.0, lambda s: s.beam.orientation_deg),
+    "beam_sample_quality": (5, lambda s: s.beam.sample_quality),
+    "beam_quality_factor": (1.3, lambda s: s.beam.quality_factor),
+    "beam_exit_diameter_m": (0.004, lambda s: s.beam.exit_diameter_m),
+    "bin_size_ns": (0.5, lambda s: s.detector.bin_size_ns),
+    "window_size_ns": (2.25, lambda s: s.detector.window_size_ns),
+    "min_energy": (7.0, lambda s: s.detector.min_energy),
+    "max_returns": (4, lambda s: s.detector.max_returns),
+    "range_min_m": (2.5, lambda s: s.detector.range_min_m),
+    "range_noise_m": (0.03, lambda s: s.detector.range_noise_m),
+    "optical_efficiency": (0.7, lambda s: s.detector.optical_efficiency),
+    "receiver_diameter_m": (0.08, lambda s: s.detector.receiver_diameter_m),
+    "atmosphere": (True, lambda s: s.atmosphere.enabled),
+    "visibility_km": (12.0, lambda s: s.atmosphere.visibility_km),
+    "tls_h_fov_deg": ((-60.0, 60.0), lambda s: s.tls.h_fov_deg),
+    "tls_v_fov_deg": ((-30.0, 45.0), lambda s: s.tls.v_fov_deg),
+    "tls_h_step_deg": (0.25, lambda s: s.tls.h_step_deg),
+    "tls_v_step_deg": (0.125, lambda s: s.tls.v_step_deg),
+}
+
+
+def test_every_flat_key_sets_its_record_field():
+    """The flat keys of survey files reach the fields of the part records; the settings read
+    back as the same flat mapping, and build again from it."""
+    assert set(INPUT_KEYS) == set(FLAT_OVERRIDES) | {"name", "deflector", "beam_divergence_full_1e2_mrad",
+                                                     "beam_divergence_fwhm_mrad"}
+    base = PRESETS["riegl_vz400"]
+    ov = {k: list(v) if isinstance(v, tuple) else v for k, (v, _) in FLAT_OVERRIDES.items()}
+    s = scanner_from_preset("riegl_vz400", ov)
+    for key, (value, read) in FLAT_OVERRIDES.items():
+        assert read(base) != value, key
+        assert read(s) == value, key
+        assert s.flat()[key] == value
+        # one key changes one field
+        one = base.replaced(**{key: value})
+        assert read(one) == value and sum(one.flat()[k] != base.flat()[k] for k in FLAT_KEYS) == 1, key
+    assert (s.name, s.deflector.kind) == ("riegl_vz400", "tls")
+    assert ScannerSettings.from_flat(**s.flat()) == s
+    for name, preset in PRESETS.items():
+        assert ScannerSettings.from_flat(**preset.flat()) == preset and preset.replaced() == preset, name
+    # each record field is set by one key
+    assert len(set(FLAT_KEYS.values())) == len(FLAT_KEYS)
+    assert input_key("detector", "window_size_ns") == "window_size_ns"
+    assert input_key("beam", "divergence_mrad") == "beam_divergence_mrad"
+    assert input_key("atmosphere", "enabled") == "atmosphere"
+    with pytest.raises(TypeError, match="window_ns"):
+        base.replaced(window_ns=1.0)
+
+
+def test_settings_are_frozen_hashable_and_picklable():
+    """Settings cross process boundaries (forked or spawned workers) and serve as keys."""
+    s = scanner_from_preset("riegl_minivux1uav", {"beam_divergence_fwhm_mrad": [1.6, 0.5], "max_returns": 5})
+    back = pickle.loads(pickle.dumps(s))
+    assert back == s and hash(back) == hash(s) and {s: 1}[back] == 1
+    assert back != s.replaced(max_returns=4)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.detector.max_returns = 3
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.beam = s.beam
+    # the other parts of a replaced copy are shared, not copied
+    r = s.replaced(window_size_ns=3.0)
+    assert r.detector.window_size_ns == 3.0 and r.beam is s.beam and r.emitter is s.emitter
 
 
 BAD_OVERRIDES = [
@@ -183,7 +271,8 @@ def test_unknown_preset_lists_known_ones():
 
 def test_custom_scanner_mapping():
     s = scanner_from_dict(custom("conic", scan_angle_deg=15.0))
-    assert s.deflector == "conic" and s.max_scan_angle_deg == 15.0 and s.beam_divergence_mrad == (0.5, 0.5)
+    assert s.deflector.kind == "conic" and s.deflector.max_scan_angle_deg == 15.0
+    assert s.beam.divergence_mrad == (0.5, 0.5)
     with pytest.raises(ConfigError, match=r"scanner\.prf_hz"):
         scanner_from_dict({"deflector": "conic", "scan_freq_hz": 1, "scan_angle_deg": 5, "beam_divergence_mrad": 1})
     with pytest.raises(ConfigError, match=r"scanner\.deflector"):
@@ -262,33 +351,33 @@ def _documented_pattern(sc, k):
     (emitted, direction, scan_dir, scan angle) in the body frame."""
     out = []
     for kk in k.tolist():
-        if sc.deflector == "tls":
-            n_el = int(round((sc.tls_v_fov_deg[1] - sc.tls_v_fov_deg[0]) / sc.tls_v_step_deg)) + 1
-            az = math.radians(sc.tls_h_fov_deg[0] + (kk // n_el) * sc.tls_h_step_deg)
-            el_deg = sc.tls_v_fov_deg[0] + (kk % n_el) * sc.tls_v_step_deg
+        if sc.deflector.kind == "tls":
+            n_el = int(round((sc.tls.v_fov_deg[1] - sc.tls.v_fov_deg[0]) / sc.tls.v_step_deg)) + 1
+            az = math.radians(sc.tls.h_fov_deg[0] + (kk // n_el) * sc.tls.h_step_deg)
+            el_deg = sc.tls.v_fov_deg[0] + (kk % n_el) * sc.tls.v_step_deg
             el = math.radians(el_deg)
             out.append((True, (math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)),
                         (-math.sin(el) * math.sin(az), -math.sin(el) * math.cos(az), math.cos(el)), el_deg))
             continue
-        lines = kk * sc.scan_freq_hz / sc.prf_hz
+        lines = kk * sc.deflector.scan_freq_hz / sc.emitter.prf_hz
         line, phase = math.floor(lines + 1e-12), (lines + 1e-12) % 1.0 - 1e-12
-        if sc.deflector == "conic":
-            phi, c = 2 * math.pi * phase, math.radians(sc.scan_angle_deg)
+        if sc.deflector.kind == "conic":
+            phi, c = 2 * math.pi * phase, math.radians(sc.deflector.scan_angle_deg)
             d = (math.sin(c) * math.sin(phi), math.sin(c) * math.cos(phi), -math.cos(c))
             out.append((True, d, (math.cos(phi), -math.sin(phi), 0.0), math.degrees(math.atan2(d[0], -d[2]))))
             continue
         sign = 1.0
-        if sc.deflector == "polygon":
-            m = sc.max_scan_angle_deg
+        if sc.deflector.kind == "polygon":
+            m = sc.deflector.max_scan_angle_deg
             a = -m + 2 * m * phase
-        elif sc.deflector == "rotating":
+        elif sc.deflector.kind == "rotating":
             a = -180.0 + 360.0 * phase
         else:  # oscillating: a triangle wave, back on odd lines
-            t = sc.scan_angle_deg
+            t = sc.deflector.scan_angle_deg
             sign = -1.0 if line % 2 else 1.0
             a = sign * (-t + 2 * t * phase)
-        window = min(sc.effective_max_scan_angle_deg, sc.scan_angle_deg)
-        if sc.deflector in ("polygon", "rotating") and abs(a) > window + 1e-9:
+        window = min(sc.deflector.effective_max_scan_angle_deg, sc.deflector.scan_angle_deg)
+        if sc.deflector.kind in ("polygon", "rotating") and abs(a) > window + 1e-9:
             out.append((False, None, None, None))
             continue
         r = math.radians(a)
@@ -315,8 +404,9 @@ def test_deflect_follows_the_documented_patterns(scanner):
     emitted, direction, scan_dir, angle = deflect(sc, k)
     ref = _documented_pattern(sc, k)
     # slots at the edge of the emission window (within rounding of the window) are not compared
-    sure = np.array([not e or abs(abs(a) - min(sc.effective_max_scan_angle_deg, sc.scan_angle_deg)) > 1e-6
-                     if sc.deflector in ("polygon", "rotating") else True for e, _, _, a in ref])
+    d = sc.deflector
+    sure = np.array([not e or abs(abs(a) - min(d.effective_max_scan_angle_deg, d.scan_angle_deg)) > 1e-6
+                     if d.kind in ("polygon", "rotating") else True for e, _, _, a in ref])
     assert sure.mean() > 0.99
     np.testing.assert_array_equal(emitted[sure], np.array([e for e, _, _, _ in ref])[sure])
     rows = np.cumsum(emitted) - 1
@@ -438,10 +528,10 @@ def test_scan_line_bound_is_tight_for_a_small_far_box():
     s = survey_from_dict(airborne(custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0),
                                   legs=[{"start": [0, 0, 100], "end": [0, 100, 100]}]))
     m = s.motion
-    args = (m.p0, m.vel, m.rot, s.scanner.prf_hz, s.scanner.scan_freq_hz)
+    args = (m.p0, m.vel, m.rot, s.scanner.emitter.prf_hz, s.scanner.deflector.scan_freq_hz)
     n_k = int(m.offsets[1] - m.offsets[0])
     # the line at t ≈ 0.5 s (platform at y ≈ 5 m) and a 2 m box straight below it
-    line = float(np.floor(0.5 * s.scanner.scan_freq_hz))
+    line = float(np.floor(0.5 * s.scanner.deflector.scan_freq_hz))
     mode, phi, beta = _line_window(0, line, n_k, *args, np.array([-1.0, 4.0, -1.0]), np.array([1.0, 6.0, 1.0]), 1e-3)
     assert mode == 2
     b = s.pulses(0, s.n_slots)
@@ -644,7 +734,7 @@ def test_no_noise_is_exactly_zero():
 def test_tls_slots_and_field_of_view():
     s = survey_from_dict(tls_survey())
     sc = s.scanner
-    az, el = tls_grid(sc)
+    az, el = tls_grid(sc.tls)
     assert len(az) == 180 and len(el) == 101  # 360° / 2°, -40…60° in 1° steps
     assert s.n_slots == 2 * len(az) * len(el)
     b = all_pulses(s)
@@ -661,14 +751,14 @@ def test_tls_slots_and_field_of_view():
     assert np.allclose(first.scan_dir[:101], [[0, -math.sin(math.radians(e)), math.cos(math.radians(e))] for e in el])
     # scans follow each other in time at 1/PRF per slot
     n = len(az) * len(el)
-    assert b.gps_time[n] == pytest.approx(n / sc.prf_hz)
+    assert b.gps_time[n] == pytest.approx(n / sc.emitter.prf_hz)
     assert np.array_equal(b.origin[n], [10.0, 0.0, 1.5])
 
 
 def test_tls_heading_and_tilt():
     s = survey_from_dict(tls_survey())
     b = all_pulses(s).subset(slice(s.n_slots // 2, None))  # second scan: heading 90°, tilt 30°
-    az, el = tls_grid(s.scanner)
+    az, el = tls_grid(s.scanner.tls)
     j0 = int(np.argmin(np.abs(el)))  # azimuth 0, elevation 0 → the head's forward axis
     tilt = math.radians(30)
     # tilt about the head's x axis raises forward by 30°, heading 90° turns forward to east
@@ -708,7 +798,8 @@ def test_load_survey_yaml(tmp_path):
         "output: {dir: out}\n"
     )
     s = load_survey(p)
-    assert s.scanner.prf_hz == 2e5 and s.scanner.beam_divergence_mrad == (0.3, 0.2) and s.scanner.max_returns == 5
+    sc = s.scanner
+    assert sc.emitter.prf_hz == 2e5 and sc.beam.divergence_mrad == (0.3, 0.2) and sc.detector.max_returns == 5
     assert s.seed == 7 and s.detector == {"mode": "paper", "window_rule": "helios"} and s.output == {"dir": "out"}
     assert s.noise.position_sigma_m == 0.05 and s.noise.attitude_sigma_deg == 0.0 and s.noise.correlation_s == 1.0
     assert s.n_slots == 2 * 400_000 and s.n_sources == 2

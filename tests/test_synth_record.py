@@ -188,13 +188,13 @@ def test_real_uls_beam_is_elliptical_and_als_circular():
     als = survey_from_dict(R.airborne_survey(_plot(), "als", R.DEFAULT_CAMPAIGN["als"], phys["als"], 0)[0])
     # the datasheet beams as 1/e² half angles: miniVUX 1.6 × 0.5 mrad FWHM = 2.718 × 0.849 mrad
     # full at 1/e² (× 2/√(2 ln 2)); VQ-780i 0.25 mrad full at 1/e²
-    major, minor = uls.scanner.beam_divergence_mrad
+    major, minor = uls.scanner.beam.divergence_mrad
     assert (2 * major, 2 * minor) == pytest.approx((2.7178, 0.8493), abs=1e-3)
-    assert als.scanner.beam_divergence_mrad == pytest.approx((0.125, 0.125))
-    assert uls.scanner.beam_sample_quality >= 4 and als.scanner.beam_sample_quality >= 4  # ≥ 37 sub-rays
+    assert als.scanner.beam.divergence_mrad == pytest.approx((0.125, 0.125))
+    assert uls.scanner.beam.sample_quality >= 4 and als.scanner.beam.sample_quality >= 4  # ≥ 37 sub-rays
     # the datasheets' ranging accuracy, the recordings' physical detector
-    assert (als.scanner.range_noise_m, uls.scanner.range_noise_m) == (0.02, 0.015)
-    assert uls.scanner.min_energy > 0 and als.detector == uls.detector == {"mode": "physical"}
+    assert (als.scanner.detector.range_noise_m, uls.scanner.detector.range_noise_m) == (0.02, 0.015)
+    assert uls.scanner.detector.min_energy > 0 and als.detector == uls.detector == {"mode": "physical"}
 
 
 def test_uls_recording_flies_p2s_second_grid_at_4_mps():

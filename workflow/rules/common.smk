@@ -104,16 +104,39 @@ JOB_PACKAGE_DIR = job_package_dir()
 # by path, without importing the package.
 # ---------------------------------------------------------------------------------------------
 def load_module_file(name, path):
-    """The Python module in the file ``path``, loaded as ``name`` (nothing else is imported)."""
+    """The Python module in the file ``path``, loaded as ``name`` (registered under that name,
+    which dataclasses need; its parent package is not imported)."""
     import importlib.util
+    import sys
 
     spec = importlib.util.spec_from_file_location(name, path)
     loaded = importlib.util.module_from_spec(spec)
+    sys.modules[name] = loaded
     spec.loader.exec_module(loaded)
     return loaded
 
 
 _workflow_support = load_module_file("vlsforest_workflow_support", LIBRARY_DIR / "workflow_support.py")
+
+
+# ---------------------------------------------------------------------------------------------
+# Scanner settings. The schema takes a scenario's `overrides` as any mapping; its keys and values
+# are checked here by the library that applies them (vlsforest.sim.scanner: its one list of
+# scanner keys, INPUT_KEYS, and its value checks), so a misspelt or bad override stops the run
+# before any job, naming the key. The module is loaded by path from the package the jobs run
+# (it imports vlsforest.errors and numpy only, not the simulator).
+# ---------------------------------------------------------------------------------------------
+def check_scenario_scanners():
+    """Raise a WorkflowError naming the scenario and key of the first invalid scanner override."""
+    scanner = load_module_file("vlsforest_scanner_settings", JOB_PACKAGE_DIR / "sim" / "scanner.py")
+    for name, scenario in config["scenarios"].items():
+        try:
+            scanner.scanner_from_preset(scenario["scanner"], scenario.get("overrides"))
+        except scanner.ConfigError as exc:
+            raise WorkflowError(f"Invalid configuration at 'scenarios.{name}': {exc}") from None
+
+
+check_scenario_scanners()
 
 
 def command_hash(command):

@@ -67,14 +67,18 @@ from vlsforest.sim.scanner import datasheet_divergence, fwhm_to_1e2
 _HALF_1E2_TO_FWHM = 2.0 / float(fwhm_to_1e2(1.0))
 
 
+def _scanner(survey: dict):
+    """The scanner a survey mapping (a preset and its ``overrides``) simulates."""
+    from vlsforest.sim.scanner import scanner_from_preset
+
+    return scanner_from_preset(survey["scanner"], survey.get("overrides"))
+
+
 def _divergence(survey: dict) -> tuple[float, float]:
     """The survey's ``beam_divergence_mrad`` (major, minor; the HELIOS++ 1/e² half angle): its
     override, else the preset's."""
-    from vlsforest.sim.scanner import PRESETS
-
-    div = (survey.get("overrides") or {}).get("beam_divergence_mrad",
-                                               PRESETS[survey["scanner"]].beam_divergence_mrad)
-    return (float(div), float(div)) if np.isscalar(div) else (float(div[0]), float(div[1]))
+    major, minor = _scanner(survey).beam.divergence_mrad
+    return float(major), float(minor)
 
 
 #: candidates applied after all others: a scale of whatever beam the others set
@@ -138,22 +142,19 @@ class Candidate:
 
     def baseline(self, survey: dict) -> dict:
         """The values the survey already simulates."""
-        from vlsforest.sim.scanner import PRESETS
-
-        ov = survey.get("overrides") or {}
-        pre = PRESETS[survey["scanner"]]
+        det = _scanner(survey).detector
         div = _divergence(survey)
         tn = survey.get("trajectory_noise") or {}
         return {
             "beam_divergence": {"scale": 1.0},
             "elliptical_footprint": {"major_mrad": div[0] * _HALF_1E2_TO_FWHM,
                                      "minor_mrad": div[1] * _HALF_1E2_TO_FWHM},
-            "detection_threshold": {"min_energy": float(ov.get("min_energy", pre.min_energy))},
+            "detection_threshold": {"min_energy": float(det.min_energy)},
             "reflectance": {"scale": 1.0},
-            "waveform_window": {"window_ns": float(ov.get("window_size_ns", pre.window_size_ns))},
-            "max_returns": {"n": float(ov.get("max_returns", pre.max_returns) or 7)},
+            "waveform_window": {"window_ns": float(det.window_size_ns)},
+            "max_returns": {"n": float(det.max_returns or 7)},
             "peak_rule": {"physical": float(_peak_rule(survey) == "physical")},
-            "range_noise": {"sigma_m": float(ov.get("range_noise_m", pre.range_noise_m))},
+            "range_noise": {"sigma_m": float(det.range_noise_m)},
             "trajectory_noise": {"position_sigma_m": float(tn.get("position_sigma_m", 0.0))},
             "incidence_reflectance": {"specularity": 0.0},
             "tls_occlusion": {"top_gain": 0.0},

@@ -190,7 +190,7 @@ def _scan(scene, pos, fov, step, tls_cfg, physics, seed):
     ov = {"tls_h_fov_deg": [-fov["h_half_deg"], fov["h_half_deg"]], "tls_v_fov_deg": fov["v_fov_deg"],
           "tls_h_step_deg": float(step), "tls_v_step_deg": float(step),
           "beam_sample_quality": int(tls_cfg["beam_sample_quality"])}
-    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam_divergence_mrad)
+    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam.divergence_mrad)
     ov.update(pov)
     survey = survey_from_dict({
         "scanner": "riegl_vz400", "overrides": ov, "seed": int(seed), "detector": {"mode": "physical"},

@@ -44,8 +44,8 @@ paths are one per echo (length ``r − t_in``, the echo's weight) plus the exiti
 cell centre is ``S = π (tan(δ/2)·d + D0/2)²`` (δ the full divergence at 1/e², D0 the exit
 diameter, d the range of the cell centre), as in AMAPVox's laser specification (its VZ-400 entry:
 D0 = 7 mm, δ = 0.35 mrad). δ and D0 are the scanner's: with a survey file its scanner's datasheet
-beam (``2 × beam_divergence_mrad`` and ``beam_exit_diameter_m`` of
-:class:`~vlsforest.sim.scanner.ScannerSettings`); without one the ``scans.csv`` columns
+beam (``2 × divergence_mrad`` and ``exit_diameter_m`` of its
+:class:`~vlsforest.sim.scanner.Beam`); without one the ``scans.csv`` columns
 ``beam_divergence_full_1e2_mrad`` and ``beam_exit_diameter_m``, defaulting to those of the preset
 named in its ``scanner`` column, else of the study's ``riegl_vz400``. With δ = D0 = 0, S = 1. Accumulated per voxel (see :class:`Accumulators`):
 shot count, potential path length, zenith angles, entering and intercepted beam section, the
@@ -207,7 +207,7 @@ def _shots_from_survey(cloud, yaml_path: Path, row, las_path: Path, ground_class
     if "gps_time" not in cloud.attrs:
         raise InputDataError(f"{las_path}: no gps_time; echoes cannot be matched to shots")
     t = np.asarray(cloud.attrs["gps_time"], dtype=np.float64)
-    tol = 0.25 / survey.scanner.prf_hz
+    tol = 0.25 / survey.scanner.emitter.prf_hz
     j = np.clip(np.searchsorted(t_shot, t), 1, max(n - 1, 1))
     if n == 1:
         j = np.zeros(len(t), np.int64)
@@ -225,13 +225,14 @@ def _shots_from_survey(cloud, yaml_path: Path, row, las_path: Path, ground_class
     rng = np.einsum("ij,ij->i", cloud.xyz - o, d)
     order, ptr, counts = _csr(best, rng, n)
     hit = _hit_mask(cloud, ground_classes)
-    div = 2.0 * float(survey.scanner.beam_divergence_mrad[0]) * 1e-3  # the 1/e² half angle → full
+    beam = survey.scanner.beam
+    div = 2.0 * float(beam.divergence_mrad[0]) * 1e-3  # the 1/e² half angle → full
     return TlsScan(scan_id=0, source=str(las_path), origin=pulses.origin.astype(np.float64),
                    direction=pulses.direction.astype(np.float64), shot_ptr=ptr,
                    echo_range=rng[order], echo_weight=_weights(ptr, counts), echo_hit=hit[order],
-                   beam_divergence_rad=div, exit_diameter_m=float(survey.scanner.beam_exit_diameter_m),
+                   beam_divergence_rad=div, exit_diameter_m=float(beam.exit_diameter_m),
                    empty_shots=True,
-                   range_min_m=float(survey.scanner.range_min_m))
+                   range_min_m=float(survey.scanner.detector.range_min_m))
 
 
 def _hit_mask(cloud, ground_classes) -> np.ndarray:
@@ -294,8 +295,8 @@ def scan_beam(row, source) -> tuple[float, float]:
             raise InputDataError(f"{source}: scans.csv names an unknown scanner {name!r} "
                                  f"(known: {', '.join(sorted(PRESETS))})")
     pre = PRESETS[name]
-    vals = {"beam_divergence_full_1e2_mrad": 2.0 * pre.beam_divergence_mrad[0],
-            "beam_exit_diameter_m": pre.beam_exit_diameter_m}
+    vals = {"beam_divergence_full_1e2_mrad": 2.0 * pre.beam.divergence_mrad[0],
+            "beam_exit_diameter_m": pre.beam.exit_diameter_m}
     for key in vals:
         if row is not None and key in row.index and not pd.isna(row[key]):
             try:

@@ -60,7 +60,7 @@ import numba
 import numpy as np
 
 from vlsforest.errors import ConfigError
-from vlsforest.sim.scanner import DEFLECTORS, ScannerSettings, emission_half_angle_deg
+from vlsforest.sim.scanner import DEFLECTORS, ScannerSettings, TlsGrid, emission_half_angle_deg
 
 __all__ = [
     "CONIC",
@@ -128,8 +128,13 @@ class DeflectorPattern:
                 self.az_r, self.el_r, self.el_deg)
 
 
-def tls_grid(s: ScannerSettings) -> tuple[np.ndarray, np.ndarray]:
+def tls_grid(grid: TlsGrid) -> tuple[np.ndarray, np.ndarray]:
     """Azimuth and elevation nodes of one TLS scan (degrees).
+
+    Parameters
+    ----------
+    grid : TlsGrid
+        The scanner's angular grid (``ScannerSettings.tls``).
 
     Returns
     -------
@@ -138,15 +143,15 @@ def tls_grid(s: ScannerSettings) -> tuple[np.ndarray, np.ndarray]:
     elevation_deg : ndarray, shape (n_el,)
         ``v0 + j·v_step`` up to ``v1``.
     """
-    h0, h1 = s.tls_h_fov_deg
-    v0, v1 = s.tls_v_fov_deg
+    h0, h1 = grid.h_fov_deg
+    v0, v1 = grid.v_fov_deg
     span = h1 - h0
     if span >= 360.0 - 1e-9:
-        n_az = int(math.ceil(360.0 / s.tls_h_step_deg - 1e-9))
+        n_az = int(math.ceil(360.0 / grid.h_step_deg - 1e-9))
     else:
-        n_az = int(math.floor(span / s.tls_h_step_deg + 1e-9)) + 1
-    n_el = int(math.floor((v1 - v0) / s.tls_v_step_deg + 1e-9)) + 1
-    return h0 + np.arange(n_az) * s.tls_h_step_deg, v0 + np.arange(n_el) * s.tls_v_step_deg
+        n_az = int(math.floor(span / grid.h_step_deg + 1e-9)) + 1
+    n_el = int(math.floor((v1 - v0) / grid.v_step_deg + 1e-9)) + 1
+    return h0 + np.arange(n_az) * grid.h_step_deg, v0 + np.arange(n_el) * grid.v_step_deg
 
 
 def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
@@ -157,32 +162,33 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
     ConfigError
         An unknown deflector.
     """
-    if s.deflector not in DEFLECTORS:
-        raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {s.deflector!r})")
-    kind = DEFLECTORS.index(s.deflector)
+    d = s.deflector
+    if d.kind not in DEFLECTORS:
+        raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {d.kind!r})")
+    kind = DEFLECTORS.index(d.kind)
     a = b = 0.0
     window = np.inf
     sin_cone, cos_cone = 0.0, 1.0
     none = np.zeros(0)
     az_r = el_r = el_deg = none
-    freq = float(s.scan_freq_hz)
+    freq = float(d.scan_freq_hz)
     if kind == POLYGON:
-        a, b = -s.max_scan_angle_deg, 2.0 * s.max_scan_angle_deg
+        a, b = -d.max_scan_angle_deg, 2.0 * d.max_scan_angle_deg
         window = emission_half_angle_deg(s) * (1 + 1e-12)
     elif kind == ROTATING:
         a, b = -180.0, 360.0
         window = emission_half_angle_deg(s) * (1 + 1e-12)
     elif kind == OSCILLATING:
-        a, b = s.scan_angle_deg, 2.0 * s.scan_angle_deg
+        a, b = d.scan_angle_deg, 2.0 * d.scan_angle_deg
     elif kind == CONIC:
-        c = math.radians(s.scan_angle_deg)
+        c = math.radians(d.scan_angle_deg)
         sin_cone, cos_cone = math.sin(c), math.cos(c)
     else:
-        az, el = tls_grid(s)
+        az, el = tls_grid(s.tls)
         az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
         freq = 0.0
-    return DeflectorPattern(kind, float(s.prf_hz), freq, float(a), float(b), float(window), sin_cone, cos_cone,
-                            az_r, el_r, el_deg)
+    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), float(window), sin_cone,
+                            cos_cone, az_r, el_r, el_deg)
 
 
 # --------------------------------------------------------------------------- per-slot functions

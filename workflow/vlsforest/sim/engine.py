@@ -138,9 +138,10 @@ class _Job:
         self.block_slots = int(block_slots)
         sc = survey.scanner
         self.opts = DetectorOptions.from_dict(survey.detector)
-        self.pattern = subray_pattern(sc.beam_sample_quality, sc.beam_divergence_mrad, sc.beam_orientation_deg)
-        self.atm_alpha = (atmospheric_alpha(sc.wavelength_nm, sc.visibility_km, self.opts.atmosphere_convention)
-                          if sc.atmosphere else 0.0)
+        self.pattern = subray_pattern(sc.beam.sample_quality, sc.beam.divergence_mrad, sc.beam.orientation_deg)
+        self.atm_alpha = (atmospheric_alpha(sc.emitter.wavelength_nm, sc.atmosphere.visibility_km,
+                                            self.opts.atmosphere_convention)
+                          if sc.atmosphere.enabled else 0.0)
         mats = [p.material for p in scene.parts]
         self.refl_pct = np.array([m.reflectance * 100.0 for m in mats] + [0.0])
         self.spec = np.array([m.specularity for m in mats] + [0.0])
@@ -157,14 +158,15 @@ class _Job:
         # and for pure Embree scenes without face labels straight from Embree's answer
         self.raw_embree = self._raw_embree()
         self.tan_off = float(np.tan(self.max_offset))
-        self.range_min = float(sc.range_min_m)
+        self.range_min = float(sc.detector.range_min_m)
         self.energy_const = energy_constants(
-            n_subrays=self.pattern.n, average_power_w=sc.average_power_w, receiver_diameter_m=sc.receiver_diameter_m,
-            optical_efficiency=sc.optical_efficiency, range0=sc.range_min_m, m2=sc.beam_quality_factor,
-            atm_alpha=self.atm_alpha)
+            n_subrays=self.pattern.n, average_power_w=sc.emitter.average_power_w,
+            receiver_diameter_m=sc.detector.receiver_diameter_m, optical_efficiency=sc.detector.optical_efficiency,
+            range0=sc.detector.range_min_m, m2=sc.beam.quality_factor, atm_alpha=self.atm_alpha)
         self.detection_const = detection_constants(
-            pulse_length_ns=sc.pulse_length_ns, bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns,
-            min_energy=sc.min_energy, max_returns=sc.max_returns, peak_rule=self.opts.peak_rule,
+            pulse_length_ns=sc.emitter.pulse_length_ns, bin_size_ns=sc.detector.bin_size_ns,
+            window_size_ns=sc.detector.window_size_ns, min_energy=sc.detector.min_energy,
+            max_returns=sc.detector.max_returns, peak_rule=self.opts.peak_rule,
             two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
@@ -378,13 +380,15 @@ def _detect(job: _Job, batch, ptr, hits):
     pat = job.pattern
     hpart = hits["part"]
     energy = hit_energy(hits["range"], hits["subray"], hits["cos_inc"], hpart, pat.frac, job.refl_pct, job.spec,
-                        job.shin, pat.n, average_power_w=sc.average_power_w,
-                        receiver_diameter_m=sc.receiver_diameter_m, optical_efficiency=sc.optical_efficiency,
-                        range0=sc.range_min_m, m2=sc.beam_quality_factor, atm_alpha=job.atm_alpha)
+                        job.shin, pat.n, average_power_w=sc.emitter.average_power_w,
+                        receiver_diameter_m=sc.detector.receiver_diameter_m,
+                        optical_efficiency=sc.detector.optical_efficiency, range0=sc.detector.range_min_m,
+                        m2=sc.beam.quality_factor, atm_alpha=job.atm_alpha)
     o = job.opts
-    det = detect_returns(ptr, hits["range"], energy, pulse_length_ns=sc.pulse_length_ns,
-                         bin_size_ns=sc.bin_size_ns, window_size_ns=sc.window_size_ns, min_energy=sc.min_energy,
-                         max_returns=sc.max_returns, peak_rule=o.peak_rule, two_way_time=o.two_way_time,
+    det = detect_returns(ptr, hits["range"], energy, pulse_length_ns=sc.emitter.pulse_length_ns,
+                         bin_size_ns=sc.detector.bin_size_ns, window_size_ns=sc.detector.window_size_ns,
+                         min_energy=sc.detector.min_energy, max_returns=sc.detector.max_returns,
+                         peak_rule=o.peak_rule, two_way_time=o.two_way_time,
                          dedupe_ranges=o.dedupe_ranges)
     label = hits["label"][det["hit"]] if "label" in hits else None
     weighted = None
@@ -402,9 +406,9 @@ def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, 
     ``p`` is the batch row of each return, ``part`` the scene part of its nearest sub-ray hit;
     ``weighted`` (ranges → xyz) replaces the position on the central beam axis.
     """
-    sc = job.survey.scanner
-    if sc.range_noise_m > 0:
-        ranges = ranges + range_noise(job.seed, batch.slot[p], ret_num, sc.range_noise_m)
+    sigma = job.survey.scanner.detector.range_noise_m
+    if sigma > 0:
+        ranges = ranges + range_noise(job.seed, batch.slot[p], ret_num, sigma)
     if weighted is None:
         xyz = batch.origin[p] + ranges[:, None] * batch.direction[p]
     else:
@@ -707,7 +711,7 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
     job = _Job(fake_scene, survey, seed, False, block_slots)
     if len(hits["subray"]) and int(hits["subray"].max()) >= job.pattern.n:
         raise ConfigError(f"the hits were traced with more sub-rays than the survey's beam_sample_quality "
-                          f"{survey.scanner.beam_sample_quality} gives ({job.pattern.n}); detection needs the "
+                          f"{survey.scanner.beam.sample_quality} gives ({job.pattern.n}); detection needs the "
                           "beam geometry the hits were traced with")
     blocks = pulses["slot"] // job.block_slots
     hit_ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)

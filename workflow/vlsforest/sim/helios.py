@@ -103,6 +103,7 @@ from vlsforest.domain.cubes import cube_triangles
 from vlsforest.errors import ConfigError
 from vlsforest.sim import DetectorOptions, ScannerSettings, Survey, load_survey
 from vlsforest.sim.deflector import tls_grid
+from vlsforest.sim.scanner import input_key
 
 __all__ = ["Approximation", "NO_ATMOSPHERE_VISIBILITY_KM", "PLATFORM_FILE", "SCANNER_FILE", "SCENE_FILE",
            "SURVEY_FILE", "SurveyXml", "export_scene", "export_survey", "survey_documents", "write_scene_xml"]
@@ -362,38 +363,46 @@ class _Optics:
 
 def _optics(s: ScannerSettings, prf: int, col: _Collector) -> _Optics:
     """Map a scanner's deflector onto a HELIOS++ one (see the module docstring)."""
-    key = "scanner.scan_freq_hz"
+    d = s.deflector
+    key = _key("deflector", "scan_freq_hz")
     line = "line frequency"
-    if s.deflector == "polygon":
-        f = col.integer(s.scan_freq_hz, key, line, "HELIOS++ 1.0.8")
-        return _Optics("rotating", s.max_scan_angle_deg, s.effective_max_scan_angle_deg, s.scan_angle_deg, f)
-    if s.deflector == "rotating":
-        f = col.integer(s.scan_freq_hz, key, line, "HELIOS++ 1.0.8")
-        return _Optics("rotating", 180.0, s.effective_max_scan_angle_deg, s.scan_angle_deg, f)
-    if s.deflector == "oscillating":
-        f = col.integer(s.scan_freq_hz / 2.0, key, "mirror period frequency (half the line frequency)",
+    if d.kind == "polygon":
+        f = col.integer(d.scan_freq_hz, key, line, "HELIOS++ 1.0.8")
+        return _Optics("rotating", d.max_scan_angle_deg, d.effective_max_scan_angle_deg, d.scan_angle_deg, f)
+    if d.kind == "rotating":
+        f = col.integer(d.scan_freq_hz, key, line, "HELIOS++ 1.0.8")
+        return _Optics("rotating", 180.0, d.effective_max_scan_angle_deg, d.scan_angle_deg, f)
+    if d.kind == "oscillating":
+        f = col.integer(d.scan_freq_hz / 2.0, key, "mirror period frequency (half the line frequency)",
                         "HELIOS++ 1.0.8")
-        return _Optics("oscillating", s.max_scan_angle_deg, None, s.scan_angle_deg, f)
-    if s.deflector == "conic":
-        f = col.integer(s.scan_freq_hz, key, "rotation frequency", "HELIOS++ 1.0.8")
-        return _Optics("conic", s.max_scan_angle_deg, None, s.scan_angle_deg, f)
+        return _Optics("oscillating", d.max_scan_angle_deg, None, d.scan_angle_deg, f)
+    if d.kind == "conic":
+        f = col.integer(d.scan_freq_hz, key, "rotation frequency", "HELIOS++ 1.0.8")
+        return _Optics("conic", d.max_scan_angle_deg, None, d.scan_angle_deg, f)
     # tls: a vertical mirror line per azimuth step, the head turning one step per line
-    v0, v1 = s.tls_v_fov_deg
+    g = s.tls
+    v0, v1 = g.v_fov_deg
     half = 0.5 * (v1 - v0)
-    f = col.integer(s.tls_v_step_deg * prf / (v1 - v0), "scanner.tls_v_step_deg",
-                    "line frequency (tls_v_step_deg · PRF / vertical span)", "HELIOS++ 1.0.8")
-    step = s.tls_h_step_deg
+    v_step = input_key("tls", "v_step_deg")
+    f = col.integer(g.v_step_deg * prf / (v1 - v0), f"scanner.{v_step}",
+                    f"line frequency ({v_step} · PRF / vertical span)", "HELIOS++ 1.0.8")
+    step = g.h_step_deg
     return _Optics("rotating", half, half, half, f, head_speed_deg=step * f, head_step_deg=step,
                    emitter_tilt_deg=0.5 * (v0 + v1), head_axis_z=-1.0)
 
 
+def _key(part: str, name: str) -> str:
+    """The survey key of a scanner setting (``scanner.<flat key>``) in messages."""
+    return f"scanner.{input_key(part, name)}"
+
+
 def _scanner_approximations(s: ScannerSettings, survey: Survey, col: _Collector) -> dict:
     """The scanner values that are not one-to-one, with their approximations."""
-    major, minor = (float(v) for v in s.beam_divergence_mrad)
+    major, minor = (float(v) for v in s.beam.divergence_mrad)
     div = major
     if not math.isclose(major, minor, rel_tol=1e-12):
         div = math.sqrt(major * minor)
-        col.add("scanner.beam_divergence_mrad",
+        col.add(_key("beam", "divergence_mrad"),
                 f"HELIOS++ has no elliptical beam, the survey's is {major:g} × {minor:g} mrad",
                 f"a circular beam of {div:.6g} mrad (the geometric mean)")
     opts = DetectorOptions.from_dict(survey.detector)
@@ -404,24 +413,26 @@ def _scanner_approximations(s: ScannerSettings, survey: Survey, col: _Collector)
         col.add("detector", f"HELIOS++ has one detector, the helios_v1 switches; the survey sets {', '.join(diff)}",
                 "HELIOS++'s own detector")
     threshold = _HELIOS_THRESHOLD
-    if s.min_energy > 0:
-        threshold = float(s.min_energy)
+    if s.detector.min_energy > 0:
+        threshold = float(s.detector.min_energy)
         if not math.isclose(threshold, _HELIOS_THRESHOLD, rel_tol=1e-12):
-            col.add("scanner.min_energy", f"HELIOS++ 1.0.8's detection threshold is fixed at {_HELIOS_THRESHOLD:g}, "
+            col.add(_key("detector", "min_energy"),
+                    f"HELIOS++ 1.0.8's detection threshold is fixed at {_HELIOS_THRESHOLD:g}, "
                     f"the survey's is {threshold:g}", "receivedEnergyMin_W, read by HELIOS++ 2.x only")
     if survey.noise.enabled:
         col.add("trajectory_noise", "HELIOS++'s platform noise is white noise with a lifespan, not the "
                 "survey's smooth trajectory error", "no trajectory noise")
-    prf = col.integer(s.prf_hz, "scanner.prf_hz", "pulse frequency")
-    wavelength = col.integer(s.wavelength_nm, "scanner.wavelength_nm", "wavelength (nm)")
+    prf = col.integer(s.emitter.prf_hz, _key("emitter", "prf_hz"), "pulse frequency")
+    wavelength = col.integer(s.emitter.wavelength_nm, _key("emitter", "wavelength_nm"), "wavelength (nm)")
     return {"divergence_mrad": div, "threshold": threshold, "prf": prf, "wavelength": wavelength}
 
 
 def _scanner_element(s: ScannerSettings, optics: _Optics, vals: dict) -> ET.Element:
+    det, beam = s.detector, s.beam
     attrs = {
         "id": _ident(s.name), "name": f"{s.name} (vlsforest scanner settings)", "optics": optics.optics,
         "pulseFreqs_Hz": str(vals["prf"]), "beamDivergence_rad": vals["divergence_mrad"] / 1000.0,
-        "pulseLength_ns": s.pulse_length_ns, "accuracy_m": s.range_noise_m, "rangeMin_m": s.range_min_m,
+        "pulseLength_ns": s.emitter.pulse_length_ns, "accuracy_m": det.range_noise_m, "rangeMin_m": det.range_min_m,
         "scanAngleMax_deg": optics.angle_max_deg,
     }
     if optics.angle_effective_deg is not None:
@@ -431,10 +442,11 @@ def _scanner_element(s: ScannerSettings, optics: _Optics, vals: dict) -> ET.Elem
         attrs["scanProduct"] = max(_SCAN_PRODUCT, int(math.ceil(optics.angle_max_deg * optics.scan_freq_hz)))
     attrs.update({
         "headRotatePerSecMax_deg": optics.head_speed_deg, "wavelength_nm": vals["wavelength"],
-        "averagePower_w": s.average_power_w, "beamQualityFactor": s.beam_quality_factor,
-        "opticalEfficiency": s.optical_efficiency, "receiverDiameter_m": s.receiver_diameter_m,
-        "atmosphericVisibility_km": s.visibility_km if s.atmosphere else NO_ATMOSPHERE_VISIBILITY_KM,
-        "maxNOR": int(s.max_returns), "receivedEnergyMin_W": vals["threshold"],
+        "averagePower_w": s.emitter.average_power_w, "beamQualityFactor": beam.quality_factor,
+        "opticalEfficiency": det.optical_efficiency, "receiverDiameter_m": det.receiver_diameter_m,
+        "atmosphericVisibility_km": (s.atmosphere.visibility_km if s.atmosphere.enabled
+                                     else NO_ATMOSPHERE_VISIBILITY_KM),
+        "maxNOR": int(det.max_returns), "receivedEnergyMin_W": vals["threshold"],
     })
     el = _element("scanner", attrs)
     origin = _element("beamOrigin", {"x": 0, "y": 0, "z": 0}, el)
@@ -446,8 +458,8 @@ def _scanner_element(s: ScannerSettings, optics: _Optics, vals: dict) -> ET.Elem
 
 
 def _fwf(s: ScannerSettings) -> dict:
-    return {"binSize_ns": s.bin_size_ns, "winSize_ns": s.window_size_ns,
-            "beamSampleQuality": int(s.beam_sample_quality)}
+    return {"binSize_ns": s.detector.bin_size_ns, "winSize_ns": s.detector.window_size_ns,
+            "beamSampleQuality": int(s.beam.sample_quality)}
 
 
 def _linear_waypoints(survey: Survey) -> list[dict]:
@@ -547,12 +559,12 @@ def survey_documents(survey: Survey, *, name: str = "vlsforest_survey", scene: s
                                          "headRotateStart_deg": 0, "headRotateStop_deg": 0,
                                          "trajectoryTimeInterval_s": trajectory_interval_s}, leg)
     else:
-        n_az = len(tls_grid(s)[0])
+        n_az = len(tls_grid(s.tls)[0])
         for i, p in enumerate(survey.positions):
             sv.append(_comment(f"scan position {i}"))
             leg = _element("leg", {}, sv)
             x, y, z = (float(c) for c in p.position)
-            start = float(s.tls_h_fov_deg[0]) + float(p.heading_deg)
+            start = float(s.tls.h_fov_deg[0]) + float(p.heading_deg)
             _element("platformSettings", {"x": x, "y": y, "z": z, "onGround": False}, leg)
             _element("scannerSettings", {"active": True, **settings, "headRotatePerSec_deg": optics.head_speed_deg,
                                          "headRotateStart_deg": start,

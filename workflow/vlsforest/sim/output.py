@@ -62,9 +62,10 @@ def beam_geometry(scanner) -> dict:
     dict
         ``beam_divergence_mrad`` (major, minor), ``beam_orientation_deg``, ``beam_sample_quality``.
     """
-    return {"beam_divergence_mrad": np.asarray(scanner.beam_divergence_mrad, dtype=np.float64).reshape(2),
-            "beam_orientation_deg": np.float64(scanner.beam_orientation_deg),
-            "beam_sample_quality": np.int64(scanner.beam_sample_quality)}
+    beam = scanner.beam
+    return {"beam_divergence_mrad": np.asarray(beam.divergence_mrad, dtype=np.float64).reshape(2),
+            "beam_orientation_deg": np.float64(beam.orientation_deg),
+            "beam_sample_quality": np.int64(beam.sample_quality)}
 
 
 def beam_mismatch(stored: dict, scanner) -> list[str]:

@@ -3,8 +3,8 @@
 A survey is a scanner (a preset of :mod:`vlsforest.sim.scanner` with overrides) carried by a
 platform. :func:`load_survey` reads SURVEY.yaml::
 
-    scanner: riegl_vq780i              # preset name, or a mapping of ScannerSettings fields
-                                       # (custom scanner, see scanner_from_dict)
+    scanner: riegl_vq780i              # preset name, or a mapping of flat scanner keys
+                                       # (custom scanner, see scanner_from_dict, INPUT_KEYS)
     overrides: {prf_hz: 1.0e6, beam_divergence_fwhm_mrad: [1.6, 0.5], ...}   # optional
     platform:
       type: linear                     # default; or static (TLS)
@@ -345,7 +345,7 @@ def _parse_static(p: dict, scanner: ScannerSettings):
     if "positions" not in p:
         raise ConfigError("platform.positions is missing")
     raw = _list(p["positions"], "platform.positions")
-    az, el = tls_grid(scanner)
+    az, el = tls_grid(scanner.tls)
     specs = []
     for i, entry in enumerate(raw):
         key = f"platform.positions[{i}]"
@@ -360,7 +360,7 @@ def _parse_static(p: dict, scanner: ScannerSettings):
         specs.append((pos, heading, tilt))
     if len(specs) > 65535:
         raise ConfigError("platform.positions has more than 65535 entries (source_id is 16-bit)")
-    return place_scans(specs, len(az) * len(el), scanner.prf_hz)
+    return place_scans(specs, len(az) * len(el), scanner.emitter.prf_hz)
 
 
 def survey_from_dict(d: dict, base_dir=None) -> Survey:
@@ -408,13 +408,12 @@ def survey_from_dict(d: dict, base_dir=None) -> Survey:
     ptype = p.get("type", "linear")
     if ptype not in ("linear", "static"):
         raise ConfigError(f"platform.type must be linear or static (got {ptype!r})")
-    if (ptype == "static") != (scanner.deflector == "tls"):
-        need = "static" if scanner.deflector == "tls" else "linear"
-        raise ConfigError(
-            f"platform.type {ptype!r} does not fit the {scanner.deflector} deflector of {scanner.name}; use {need}"
-        )
+    kind = scanner.deflector.kind
+    if (ptype == "static") != (kind == "tls"):
+        need = "static" if kind == "tls" else "linear"
+        raise ConfigError(f"platform.type {ptype!r} does not fit the {kind} deflector of {scanner.name}; use {need}")
     if ptype == "linear":
-        speed, legs = _parse_linear(p, scanner.prf_hz)
+        speed, legs = _parse_linear(p, scanner.emitter.prf_hz)
         positions = []
     else:
         speed, legs = None, []

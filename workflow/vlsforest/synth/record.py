@@ -383,7 +383,7 @@ def _tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
     ov = {"tls_h_fov_deg": [-half, half], "tls_v_fov_deg": list(cfg["v_fov_deg"]),
           "tls_h_step_deg": cfg["step_deg"], "tls_v_step_deg": cfg["step_deg"],
           "beam_sample_quality": int(cfg["beam_sample_quality"])}
-    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam_divergence_mrad)
+    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam.divergence_mrad)
     ov.update(pov)
     return {"scanner": "riegl_vz400", "overrides": ov, "seed": seed,
             "platform": {"type": "static", "positions": [pos]}, "detector": _detector(physics)}
@@ -412,7 +412,7 @@ def airborne_survey(plot, sensor: str, campaign: dict, physics: dict, seed: int)
     speeds = [float(v) for v in speed] if isinstance(speed, (list, tuple)) else [float(speed)] * repeats
     if len(speeds) < repeats:
         raise ConfigError(f"recordings.{sensor}.speed_mps: {len(speeds)} speed(s) for {repeats} repeats of {plot.name}")
-    base_div = PRESETS[c["scanner"]].beam_divergence_mrad
+    base_div = PRESETS[c["scanner"]].beam.divergence_mrad
     pov, traj = physics_overrides(physics, base_div)
     ov = dict(c.pop("overrides", {}) or {})
     ov.update(pov)
@@ -477,16 +477,16 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
             _write_cloud(pdir / "tls" / f"scan_{k}.laz", res, gps_offset=gps)
             _truth_labels(tdir / "tls" / f"scan_{k}_labels.npz", res)
             write_text(pdir / "tls" / f"scan_{k}.survey.yaml", yaml.safe_dump(sv, sort_keys=False))
-            s = survey.scanner
+            grid, beam, prf = survey.scanner.tls, survey.scanner.beam, survey.scanner.emitter.prf_hz
             rows.append({"scan_id": k, "x": pos["position"][0], "y": pos["position"][1], "z": pos["position"][2],
                          "heading_deg": pos["heading_deg"], "tilt_deg": pos["tilt_deg"],
-                         "h_fov_start_deg": s.tls_h_fov_deg[0], "h_fov_end_deg": s.tls_h_fov_deg[1],
-                         "v_fov_min_deg": s.tls_v_fov_deg[0], "v_fov_max_deg": s.tls_v_fov_deg[1],
-                         "h_step_deg": s.tls_h_step_deg, "v_step_deg": s.tls_v_step_deg, "prf_hz": s.prf_hz,
-                         "beam_divergence_full_1e2_mrad": 2.0 * s.beam_divergence_mrad[0],
-                         "beam_exit_diameter_m": s.beam_exit_diameter_m, "gps_time_start": gps,
+                         "h_fov_start_deg": grid.h_fov_deg[0], "h_fov_end_deg": grid.h_fov_deg[1],
+                         "v_fov_min_deg": grid.v_fov_deg[0], "v_fov_max_deg": grid.v_fov_deg[1],
+                         "h_step_deg": grid.h_step_deg, "v_step_deg": grid.v_step_deg, "prf_hz": prf,
+                         "beam_divergence_full_1e2_mrad": 2.0 * beam.divergence_mrad[0],
+                         "beam_exit_diameter_m": beam.exit_diameter_m, "gps_time_start": gps,
                          "n_shots": survey.n_slots, "n_points": len(res.points["xyz"])})
-            gps += survey.n_slots / s.prf_hz + 1.0
+            gps += survey.n_slots / prf + 1.0
             _log(f"{plot.name} TLS scan {k}: {survey.n_slots} shots, {len(res.points['xyz'])} points "
                  f"({res.timings['total']:.1f} s)", quiet)
         write_csv(pdir / "tls" / "scans.csv", pd.DataFrame(rows), index=False, float_format="%.12g")
