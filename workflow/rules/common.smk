@@ -124,11 +124,16 @@ _workflow_support = load_module_file("vlsforest_workflow_support", LIBRARY_DIR /
 # are checked here by the library that applies them (vlsforest.sim.scanner: its one list of
 # scanner keys, INPUT_KEYS, and its value checks), so a misspelt or bad override stops the run
 # before any job, naming the key. The module is loaded by path from the package the jobs run
-# (it imports vlsforest.errors and numpy only, not the simulator).
+# (it imports vlsforest.errors and numpy only, not the simulator). Where Snakemake's own Python
+# cannot import those (a cluster's Snakemake with the jobs' software in conda environments), the
+# jobs check the same settings when they start, with the same message.
 # ---------------------------------------------------------------------------------------------
 def check_scenario_scanners():
     """Raise a WorkflowError naming the scenario and key of the first invalid scanner override."""
-    scanner = load_module_file("vlsforest_scanner_settings", JOB_PACKAGE_DIR / "sim" / "scanner.py")
+    try:
+        scanner = load_module_file("vlsforest_scanner_settings", JOB_PACKAGE_DIR / "sim" / "scanner.py")
+    except ImportError:
+        return
     for name, scenario in config["scenarios"].items():
         try:
             scanner.scanner_from_preset(scenario["scanner"], scenario.get("overrides"))
