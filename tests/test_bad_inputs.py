@@ -476,9 +476,14 @@ def test_interrupt_while_writing_the_demo_scene(tmp_path, capsys, monkeypatch):
 
 
 def test_sigint_during_the_write_phase_of_a_subprocess(ws, tmp_path):
-    """A real SIGINT, sent while simulate writes its hits file: no output file remains."""
+    """A real SIGINT, sent while simulate writes its hits file: no output file remains.
+
+    The child restores Python's own SIGINT handler first: a process started by a test worker may
+    inherit SIGINT as ignored (as a background job of a shell does), and then the signal would
+    never arrive."""
     script = (
         "import os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "import numpy as np\n"
         "from vlsforest import cli\n"
         "orig = np.lib.format.write_array\n"
