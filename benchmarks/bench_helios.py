@@ -65,6 +65,13 @@ rest of the process: interpreter and library start-up, reading and building the 
 LAS write); ``startup_s`` (top-level) is the wall time of a process that only imports the
 simulator. Where we are slower the row's ``slower`` names the larger of the two.
 
+On the spruce both tools' points are also compared (``agreement``): per tool the ground
+points (object id 1), the tree points (stem 2 and crown 3), the tree's share of pulses with
+more than one return (pulses by GPS time and flight line, as :func:`vlsforest.metrics.tree_metrics`
+counts them) and its heights above the ground (median and 99th percentile), with the bounds
+:data:`AGREEMENT` (ground points within 2 %, tree points within 10 %, the multiple-return share
+within 2 percentage points, the heights within 0.15 m) and whether each holds.
+
 Linux only (``/proc``, ``os.wait4``). Rows go to ``benchmarks/results/bench_helios.jsonl``
 (``results.rows``, and flat in ``results.table``: one record per scene × survey × thread count,
 rendered by ``scripts/gen_reference.py``).
@@ -109,6 +116,13 @@ SCENARIOS = {
             "overrides": {"window_size_ns": 1.5, "beam_sample_quality": 3},
             "detector": {"mode": "helios_v1"}},
 }
+#: the spruce scene's object ids: the ground plane and the tree (stem, crown)
+GROUND_ID, TREE_IDS = 1, (2, 3)
+#: bounds of the agreement of the two tools' points on the spruce: relative differences of the
+#: ground and tree point counts, the tree's multiple-return share (percentage points) and its
+#: heights above the ground (m)
+AGREEMENT = {"ground_points": 0.02, "tree_points": 0.10, "tree_multi_return_pct": 2.0,
+             "tree_height_p50_m": 0.15, "tree_height_p99_m": 0.15}
 #: --quick: (ground square side m, {survey: scenario changes})
 QUICK = (20.0, {"als": {"margin_m": 5.0}, "uls": {"margin_m": 1.0, "n_lines": 1}})
 GROUND_SIDE_M = 100.0
@@ -266,6 +280,81 @@ def count_points(folder: Path) -> tuple[int, list[str]]:
     return total, files
 
 
+def point_summary(xyz, object_id, number_of_returns, gps_time, line, ground_z: float) -> dict:
+    """The figures :data:`AGREEMENT` compares, from one tool's points.
+
+    Parameters
+    ----------
+    xyz : ndarray (n, 3)
+        Points.
+    object_id : ndarray (n,)
+        The scene part each point hit (:data:`GROUND_ID`, :data:`TREE_IDS`).
+    number_of_returns : ndarray (n,)
+        The returns of each point's pulse.
+    gps_time : ndarray (n,)
+        Each point's pulse time.
+    line : ndarray (n,)
+        Each point's flight line (two lines may share a pulse time).
+    ground_z : float
+        The ground's height.
+
+    Returns
+    -------
+    dict
+        ``ground_points``, ``tree_points``, ``tree_multi_return_pct`` (of the pulses with a
+        return on the tree, the share whose pulse has more than one return),
+        ``tree_height_p50_m`` and ``tree_height_p99_m`` (of the tree points above the ground).
+    """
+    import numpy as np
+
+    oid = np.asarray(object_id).astype(np.int64)
+    tree = np.isin(oid, TREE_IDS)
+    out = {"ground_points": int((oid == GROUND_ID).sum()), "tree_points": int(tree.sum())}
+    if tree.any():
+        keys = np.column_stack([np.asarray(line, np.float64)[tree], np.asarray(gps_time, np.float64)[tree]])
+        _, pulse = np.unique(keys, axis=0, return_inverse=True)
+        multi = np.zeros(pulse.max() + 1, bool)
+        np.logical_or.at(multi, pulse.ravel(), np.asarray(number_of_returns)[tree] > 1)
+        h = np.asarray(xyz, np.float64)[tree, 2] - ground_z
+        out.update(tree_multi_return_pct=round(100.0 * float(multi.mean()), 3),
+                   tree_height_p50_m=round(float(np.percentile(h, 50)), 3),
+                   tree_height_p99_m=round(float(np.percentile(h, 99)), 3))
+    return out
+
+
+def helios_points(folder: Path, files) -> dict:
+    """The LAS/LAZ points of a HELIOS++ output folder: ``xyz``, ``object_id`` (``hitObjectId``),
+    ``number_of_returns``, ``gps_time`` and ``line`` (the file's index: one file per leg)."""
+    import laspy
+    import numpy as np
+
+    parts = {"xyz": [], "object_id": [], "number_of_returns": [], "gps_time": [], "line": []}
+    for k, name in enumerate(f for f in files if f.lower().endswith((".las", ".laz"))):
+        las = laspy.read(folder / name)
+        parts["xyz"].append(np.column_stack([las.x, las.y, las.z]))
+        parts["object_id"].append(np.asarray(las["hitObjectId"]))
+        parts["number_of_returns"].append(np.asarray(las.number_of_returns))
+        parts["gps_time"].append(np.asarray(las.gps_time))
+        parts["line"].append(np.full(len(las.x), k))
+    if not parts["xyz"]:
+        return {}
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def agreement(ours: dict, helios: dict) -> dict:
+    """Both tools' :func:`point_summary` figures, their differences and whether each lies within
+    :data:`AGREEMENT` (counts: relative to HELIOS++'s)."""
+    out = {"vlsforest": ours, "helios": helios}
+    for key, bound in AGREEMENT.items():
+        a, b = ours.get(key), helios.get(key)
+        if a is None or b is None:
+            continue
+        diff = (a - b) / b if key.endswith("_points") and b else a - b
+        out[f"{key}_diff"] = round(diff, 4)
+        out[f"{key}_within"] = bool(abs(diff) <= bound)
+    return out
+
+
 # ----------------------------------------------------------------------------- scenes
 def _vlsforest(*args) -> list[str]:
     return [sys.executable, "-m", "vlsforest.cli", *map(str, args)]
@@ -309,7 +398,7 @@ def spruce_cases(data: Path, work: Path, surveys, quick: bool) -> list[dict]:
         path = folder / f"{name}.yaml"
         path.write_text(yaml.safe_dump(plan_survey(scen, extent, gz, where=f"scenario {name}"), sort_keys=False))
         cases.append({"scene": "F_BR08_08" + (" (quick)" if quick else ""), "survey": name,
-                      "scene_yaml": scene_yaml, "survey_yaml": path, "folder": folder})
+                      "scene_yaml": scene_yaml, "survey_yaml": path, "folder": folder, "ground_z": gz})
     return cases
 
 
@@ -387,7 +476,14 @@ def run_ours(case: dict, threads: int, seed: int, repeats: int) -> dict:
                  n_points=int(t["n_points"]))
         runs.append(r)
     res = _median_runs(runs)
-    n_read = len(read_las(las, allow_empty=True).xyz)
+    cloud = read_las(las, allow_empty=True)
+    n_read = len(cloud.xyz)
+    if "ground_z" in case and n_read:
+        a = cloud.attrs
+        res_summary = point_summary(cloud.xyz, a["object_id"], a["number_of_returns"], a["gps_time"],
+                                    a["point_source_id"], case["ground_z"])
+    else:
+        res_summary = None
     res.update(n_points=n_read, n_pulses=runs[-1]["n_pulses"], n_rays=runs[-1]["n_rays"],
                outside_engine_s=round(res["wall_s"] - res["engine_s"], 3),
                pulses_per_cpu_s=round(runs[-1]["n_pulses"] / res["cpu_s"]) if res["cpu_s"] else None,
@@ -395,6 +491,8 @@ def run_ours(case: dict, threads: int, seed: int, repeats: int) -> dict:
     if n_read != runs[-1]["n_points"] or len({r["n_points"] for r in runs}) > 1:
         res["note"] = (f"point counts differ: LAS {n_read}, timing "
                        f"{sorted({r['n_points'] for r in runs})}")
+    if res_summary is not None:
+        res["points"] = res_summary
     las.unlink(missing_ok=True)
     return res
 
@@ -421,6 +519,11 @@ def run_helios(case: dict, binary: str, version, threads: int, seed: int, repeat
     res.update(n_points=max(counts), point_files=files, command=shlex.join(cmd))
     if len(counts) > 1:
         res["note"] = f"point counts differ between repeats: {sorted(counts)}"
+    if "ground_z" in case:
+        pts = helios_points(out, files)
+        if pts:
+            res["points"] = point_summary(pts["xyz"], pts["object_id"], pts["number_of_returns"],
+                                          pts["gps_time"], pts["line"], case["ground_z"])
     shutil.rmtree(out, ignore_errors=True)
     return res
 
@@ -437,6 +540,8 @@ def row_of(case: dict, threads: int, ours: dict, helios: dict | None, helios_not
         def ratio(a, b):
             return round(a / b, 3) if a and b else None
 
+        if ours.get("points") and helios.get("points"):
+            row["agreement"] = agreement(ours["points"], helios["points"])
         row.update(speedup_wall=ratio(helios["wall_s"], ours["wall_s"]),
                    speedup_cpu=ratio(helios["cpu_s"], ours["cpu_s"]),
                    rss_ratio=ratio(ours["max_rss_mb"], helios["max_rss_mb"]),
@@ -455,7 +560,7 @@ def flat(row: dict) -> dict:
     for k, v in row.items():
         if isinstance(v, dict):
             for kk, vv in v.items():
-                if kk not in ("command", "point_files"):
+                if kk not in ("command", "point_files", "points", "vlsforest", "helios"):
                     out[f"{k}.{kk}"] = vv
         else:
             out[k] = v
@@ -502,6 +607,16 @@ def _table(rows: list[dict]) -> str:
                 lines.append(f"  {who} failed: {d['error']}")
         if r.get("slower"):
             lines.append(f"  slower: {r['slower']}")
+        ag = r.get("agreement")
+        if ag:
+            parts = []
+            for key in AGREEMENT:
+                if f"{key}_diff" in ag:
+                    d = ag[f"{key}_diff"]
+                    txt = f"{100 * d:+.1f} %" if key.endswith("_points") else f"{d:+.2f}"
+                    parts.append(f"{key} {ag['vlsforest'][key]} vs {ag['helios'][key]} ({txt}, "
+                                 f"{'within' if ag[f'{key}_within'] else 'OUTSIDE'})")
+            lines.append("  agreement: " + "; ".join(parts))
     lines.append("medians of the repeats; ×wall, ×CPU: HELIOS++'s seconds ÷ ours (above 1: we are faster); "
                  "RSS: the largest process")
     return "\n".join(lines)

@@ -208,3 +208,26 @@ def test_rows_flatten_and_render_in_the_results_page(tmp_path):
     assert ("| date | commit | host | cpus | scene | survey | threads | n_pulses | vlsforest.wall_s | vlsforest.cpu_s "
             "| helios | helios_note |") in text
     assert "| 2026-01-01T00:00:00+00:00 | abc | m | 2 | F_BR08_08 | als | 2 | 100 | 1.5 | 2.5 |  | no HELIOS++ binary given |" in text
+
+
+def test_point_summary_and_agreement_by_hand():
+    """Four tree pulses on two lines (two share a GPS time on different lines): pulse (0, 1.0)
+    with 2 returns, (1, 1.0) with 1, (0, 2.0) with 3 (one of them on the ground), (1, 3.0) with
+    1: two of four pulses have more than one return, 50 %."""
+    xyz = np.array([[0, 0, 11.0], [0, 0, 12.0], [0, 0, 13.0], [0, 0, 14.0], [0, 0, 15.0], [0, 0, 10.0],
+                    [0, 0, 10.0]])
+    oid = np.array([2, 3, 3, 3, 3, 1, 1])
+    nret = np.array([2, 2, 1, 3, 1, 3, 1])
+    gps = np.array([1.0, 1.0, 1.0, 2.0, 3.0, 2.0, 4.0])
+    line = np.array([0, 0, 1, 0, 1, 0, 0])
+    bench = _load()
+    s = bench.point_summary(xyz, oid, nret, gps, line, ground_z=10.0)
+    assert s["ground_points"] == 2 and s["tree_points"] == 5
+    assert s["tree_multi_return_pct"] == 50.0
+    # tree heights 1, 2, 3, 4, 5 m: median 3 m; 99th percentile 4 + 0.96 m (linear interpolation)
+    assert s["tree_height_p50_m"] == 3.0 and s["tree_height_p99_m"] == pytest.approx(4.96)
+    other = dict(s, ground_points=100, tree_points=5, tree_multi_return_pct=53.0, tree_height_p99_m=5.0)
+    a = bench.agreement(dict(s, ground_points=101), other)
+    assert a["ground_points_diff"] == pytest.approx(0.01) and a["ground_points_within"]
+    assert a["tree_multi_return_pct_diff"] == pytest.approx(-3.0) and not a["tree_multi_return_pct_within"]
+    assert a["tree_height_p99_m_diff"] == pytest.approx(-0.04) and a["tree_height_p99_m_within"]
