@@ -112,7 +112,11 @@ def load_module_file(name, path):
     spec = importlib.util.spec_from_file_location(name, path)
     loaded = importlib.util.module_from_spec(spec)
     sys.modules[name] = loaded
-    spec.loader.exec_module(loaded)
+    try:
+        spec.loader.exec_module(loaded)
+    except BaseException:
+        del sys.modules[name]
+        raise
     return loaded
 
 
@@ -138,7 +142,10 @@ def check_scenario_scanners():
         try:
             scanner.scanner_from_preset(scenario["scanner"], scenario.get("overrides"))
         except scanner.ConfigError as exc:
-            raise WorkflowError(f"Invalid configuration at 'scenarios.{name}': {exc}") from None
+            msg = str(exc)
+            where, msg = ((f"scenarios.{name}.overrides", msg[len("overrides."):]) if msg.startswith("overrides.")
+                          else (f"scenarios.{name}", msg))
+            raise WorkflowError(f"Invalid configuration at '{where}': {msg}") from None
 
 
 check_scenario_scanners()
@@ -152,7 +159,6 @@ def command_hash(command):
 def script_hash(script):
     """Hash of the library code the script `script` (relative to workflow/rules) imports."""
     return _workflow_support.script_hash(Path(workflow.basedir, "workflow", "rules", script), JOB_PACKAGE_DIR)
-
 
 
 # ---------------------------------------------------------------------------------------------
@@ -463,7 +469,6 @@ def diagnosis_method():
         raise WorkflowError("Invalid configuration at 'diagnosis': 'method' is required: no scaled method "
                             "without a shift is configured")
     return scaled[0]
-
 
 
 def diagnosis_scenarios():

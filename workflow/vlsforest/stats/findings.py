@@ -47,7 +47,8 @@ CI_LEVEL = 0.95
 #: bootstrap resamples of each effect
 N_BOOT = 2000
 #: the TLS angular-step experiment's key of the study's 0.25 m cell (the scaled cubes' cell, which
-#: its fill values are shares of)
+#: its fill values are shares of); the experiment writes cell sizes as ``f"{size:g}"``
+#: (vlsforest.experiments.tls_step.cell_key), which this layer does not import
 _COARSE_KEY = "0.25"
 
 #: the cause column of a disagreement that no experiment has tested
@@ -482,7 +483,7 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
     step_cause = "the TLS angular step: 0.1° in the embedded forest's scans, 0.017° in the study's"
     rows = _step_rows(result)
     if len(rows) < 2:
-        return (step_cause + " (untested in this run)",
+        return ("not established: the TLS angular step is the candidate (untested in this run)",
                 "TLS angular-step experiment not run with fill: "
                 "`snakemake --cores 2 results/experiments/tls_step.json`")
     coarse_step, fine_step = max(rows), min(rows)
@@ -517,7 +518,7 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
         if unexplained:
             cause += f"; not established for {', '.join(unexplained)}"
         return cause, text
-    return (NO_EXPERIMENT if not fills else
+    return ("not established: the experiment has no fill for these cell sizes" if not fills else
             f"not established: the fill gained at the study's step does not move {', '.join(unexplained)} "
             f"beyond the negligible effect"), text
 
@@ -578,7 +579,7 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
     """
     rows = _step_rows(result)
     if len(rows) < 2 or not all({"conifer", "broadleaf"} <= set(r.get("groups", {})) for r in rows.values()):
-        return (NO_EXPERIMENT if rows else "not established: the TLS angular step is the candidate (untested in this run)",
+        return ("not established: the TLS angular step is the candidate (untested in this run)",
                 "TLS angular-step experiment with conifer and broadleaf targets not run: "
                 "`snakemake --cores 2 results/experiments/tls_step.json`")
     coarse_step, fine_step = max(rows), min(rows)
@@ -588,11 +589,14 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
         c, b = g["conifer"]["fill"].get(key), g["broadleaf"]["fill"].get(key)
         return c / b if c is not None and b and np.isfinite(c) and np.isfinite(b) and c > 0 else math.nan
 
-    parts, supported, untested = [], [], []
+    parts, supported, untested, own_cells = [], [], [], []
     for size in sizes:
         key = f"{float(size):g}"
+        if key == _COARSE_KEY:
+            own_cells.append(f"{key} m")
+            continue
         a, b = contrast(coarse_step, key), contrast(fine_step, key)
-        if not (np.isfinite(a) and np.isfinite(b)) or key == _COARSE_KEY:
+        if not (np.isfinite(a) and np.isfinite(b)):
             untested.append(f"{key} m")
             continue
         parts.append(f"{key} m: conifer / broadleaf fill {a:.2f} at {coarse_step:g}°, {b:.2f} at {fine_step:g}°")
@@ -601,9 +605,11 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
     text = (f"TLS angular-step experiment ({result.get('plot')}, "
             + ", ".join(f"{v['n_trees']} {g}" for g, v in sorted(rows[fine_step]["groups"].items()))
             + " target trees, restricted field of view): " + ("; ".join(parts) if parts else "no fill contrast"))
-    rest = f"; {', '.join(untested)}: not established" if untested else ""
+    rest = f"; {', '.join(untested + own_cells)}: not established" if untested or own_cells else ""
     if untested:
-        text += f"; not testable by the step: {', '.join(untested)} (the 0.25 m model fills its own cells)"
+        text += f"; no fill per group for {', '.join(untested)}"
+    if own_cells:
+        text += f"; not testable by the step: {', '.join(own_cells)} (the 0.25 m model fills its own cells)"
     if parts and len(supported) == len(parts):
         return (f"the TLS angular step for {', '.join(supported)}: at the study's step the fixed models of conifers "
                 f"and broadleaf trees fill their crowns more alike, so the porosity contrast behind the difference "
@@ -611,8 +617,8 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
     if supported:
         return (f"partly the TLS angular step: the groups' fill contrast fades at the study's step for "
                 f"{', '.join(supported)} only{rest}", text)
-    return ("not established: the groups' fill contrast does not fade at the study's step" if parts else NO_EXPERIMENT,
-            text)
+    return ("not established: the groups' fill contrast does not fade at the study's step" if parts else
+            "not established: the experiment has no fill per group for these cell sizes", text)
 
 
 def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> list[dict]:
