@@ -76,7 +76,7 @@ Linux only (``/proc``, ``os.wait4``). Rows go to ``benchmarks/results/bench_heli
 (``results.rows``, and flat in ``results.table``: one record per scene × survey × thread count,
 rendered by ``scripts/gen_reference.py``).
 
-Run: ``python benchmarks/bench_helios.py [--helios PATH] [--study-results results/]
+Run: ``python benchmarks/bench_helios.py [--helios PATH] [--study-results results/ [--study-only]]
 [--repeats 3] [--threads 1,all] [--surveys als,uls] [--quick] [--workdir DIR]``.
 """
 
@@ -629,6 +629,8 @@ def main(argv=None) -> int:
     ap.add_argument("--helios-arg", action="append", default=[], help="one more HELIOS++ argument (repeatable)")
     ap.add_argument("--data", type=Path, default=DATA, help=f"folder of {CROWN} and {STEM} (default {DATA})")
     ap.add_argument("--study-results", type=Path, help="a finished study run's results/ folder: also its plot")
+    ap.add_argument("--study-only", action="store_true",
+                    help="with --study-results: only the study plot, not the spruce")
     ap.add_argument("--plot", default="P3", help="the study plot (default P3)")
     ap.add_argument("--method", default="scaled", help="the study plot's scene method (default scaled)")
     ap.add_argument("--surveys", default=",".join(SURVEYS), help="comma-separated: als, uls (default both)")
@@ -660,12 +662,14 @@ def _main(args) -> int:
         if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
             raise BenchError(f"--helios {args.helios}: not an executable file")
         binary = str(Path(binary).resolve())
-    if not args.data.is_dir():
+    if args.study_only and not args.study_results:
+        raise BenchError("--study-only needs --study-results DIR")
+    if not args.data.is_dir() and not args.study_only:
         raise BenchError(f"no data folder {args.data} (--data DIR: the folder with {CROWN} and {STEM})")
     with tempfile.TemporaryDirectory(prefix="bench_helios_") as tmp:
         work = args.workdir or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        cases = spruce_cases(args.data, work, surveys, args.quick)
+        cases = [] if args.study_only else spruce_cases(args.data, work, surveys, args.quick)
         if args.study_results:
             cases += study_cases(args.study_results, args.plot, args.method, surveys, work)
         version = helios_version(binary, args.helios_version) if binary else None

@@ -135,6 +135,7 @@ def test_without_helios_only_our_side_is_recorded(tmp_path):
     (["--helios", "/nonexistent/helios"], "--helios /nonexistent/helios: not an executable file"),
     (["--surveys", "tls"], "--surveys takes als, uls"),
     (["--threads", "0"], "--threads takes integers"),
+    (["--study-only"], "--study-only needs --study-results DIR"),
 ])
 def test_bad_input_is_one_line_and_exit_2_without_a_row(tmp_path, args, says):
     r = _run([*args, "--data", REAL] if args[0] != "--data" else args, tmp_path / "res")
