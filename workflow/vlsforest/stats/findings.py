@@ -440,8 +440,7 @@ def _tls_step_cause(result, run_ratio: float | None = None) -> tuple[str, str]:
                                                   "`snakemake --cores 2 results/experiments/tls_step.json`")
     rows = {float(r["step_deg"]): r for r in result.get("steps", [])}
     parts = [f"{s:g}°: {r['ratio']:.1f}×" for s, r in sorted(rows.items(), reverse=True)]
-    text = (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
-            f"restricted field of view): 0.02 m / 0.25 m filled cells {', '.join(parts)}")
+    text = _step_heading(result) + f"0.02 m / 0.25 m filled cells {', '.join(parts)}"
     if len(rows) >= 2:
         coarse, fine = rows[max(rows)]["ratio"], rows[min(rows)]["ratio"]
         if coarse and np.isfinite(coarse) and np.isfinite(fine):
@@ -453,9 +452,22 @@ def _tls_step_cause(result, run_ratio: float | None = None) -> tuple[str, str]:
     return cause, text
 
 
-def _step_rows(result) -> dict:
-    """The TLS angular-step experiment's steps by angle, those with fill values only."""
-    return {float(r["step_deg"]): r for r in (result or {}).get("steps", []) if r.get("fill")}
+def _step_rows(result, field: str) -> dict:
+    """The TLS angular-step experiment's steps by angle, those that hold ``field`` only."""
+    return {float(r["step_deg"]): r for r in (result or {}).get("steps", []) if r.get(field)}
+
+
+def _step_heading(result, trees: str | None = None) -> str:
+    """The opening of an experiment text: ``TLS angular-step experiment (P3, 5 target trees,
+    restricted field of view): `` (``trees``: another count of the trees, e.g. per group)."""
+    trees = f"{result.get('n_trees')}" if trees is None else trees
+    return f"TLS angular-step experiment ({result.get('plot')}, {trees} target trees, restricted field of view): "
+
+
+def _step_untested(what: str) -> tuple[str, str]:
+    """Cause and experiment of a row whose TLS angular-step experiment did not run (with ``what``)."""
+    return ("not established: the TLS angular step is the candidate (untested in this run)",
+            f"TLS angular-step experiment{what} not run: `snakemake --cores 2 results/experiments/tls_step.json`")
 
 
 def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
@@ -481,11 +493,9 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
         ``(scenario, metric)`` → the 0.25 m model's mean error (None where absent).
     """
     step_cause = "the TLS angular step: 0.1° in the embedded forest's scans, 0.017° in the study's"
-    rows = _step_rows(result)
+    rows = _step_rows(result, "fill")
     if len(rows) < 2:
-        return ("not established: the TLS angular step is the candidate (untested in this run)",
-                "TLS angular-step experiment not run with fill: "
-                "`snakemake --cores 2 results/experiments/tls_step.json`")
+        return _step_untested(" with fill")
     coarse_step, fine_step = max(rows), min(rows)
     margin = cl.NEGLIGIBLE_HEIGHT.value
     fills, preds, explained, unexplained = [], [], [], []
@@ -506,8 +516,7 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
         good = bool(sign * pred > margin)
         preds.append(f"{name} {mean:+.2f} → {pred:+.2f} m")
         (explained if good else unexplained).append(name)
-    text = (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
-            f"restricted field of view): " + ("; ".join(fills) if fills else "no fill for these cell sizes"))
+    text = _step_heading(result) + ("; ".join(fills) if fills else "no fill for these cell sizes")
     if preds:
         text += ("; mean errors moved towards the 0.25 m model's by the fill gained (a linear interpolation): "
                  + ", ".join(preds) + f" (negligible: ±{margin:g} m)")
@@ -535,11 +544,9 @@ def _cog_cause(result, missing) -> tuple[str, str]:
     combined standard error; for ``cpa`` the same of the radial offset. The multiple-return
     share has no such link: its parts stay unexplained.
     """
-    rows = {float(r["step_deg"]): r for r in (result or {}).get("steps", []) if r.get("cog_offset")}
+    rows = _step_rows(result, "cog_offset")
     if len(rows) < 2:
-        return ("not established: the TLS angular step is the candidate (untested in this run)",
-                "TLS angular-step experiment with centre-of-gravity offsets not run: "
-                "`snakemake --cores 2 results/experiments/tls_step.json`")
+        return _step_untested(" with centre-of-gravity offsets")
     coarse_step, fine_step = max(rows), min(rows)
     a, b = rows[coarse_step]["cog_offset"], rows[fine_step]["cog_offset"]
 
@@ -552,8 +559,7 @@ def _cog_cause(result, missing) -> tuple[str, str]:
     links = {"hmean": "z", "height": "z", "cpa": "radial"}
     explained = [m for m in missing if m.split()[-1] in links and lower(links[m.split()[-1]])]
     unexplained = [m for m in missing if m not in explained]
-    text = (f"TLS angular-step experiment ({result.get('plot')}, {result.get('n_trees')} target trees, "
-            f"restricted field of view): the points' centre of gravity in the filled 0.25 m cells lies "
+    text = (_step_heading(result) + "the points' centre of gravity in the filled 0.25 m cells lies "
             + "; ".join(f"{100 * r['cog_offset']['z_m']:+.1f} ± {100 * r['cog_offset']['z_se_m']:.1f} cm vertically, "
                         f"{100 * r['cog_offset']['radial_m']:+.1f} ± {100 * r['cog_offset']['radial_se_m']:.1f} cm "
                         f"radially at {s:g}° ({r['cog_offset']['n_cells']} cells)"
@@ -577,11 +583,9 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
     The contrast of a cell size is the conifers' fill over the broadleaf trees'; the experiment
     supports the cause for a size whose contrast lies nearer 1 (in ratio) at the finest step.
     """
-    rows = _step_rows(result)
+    rows = _step_rows(result, "fill")
     if len(rows) < 2 or not all({"conifer", "broadleaf"} <= set(r.get("groups", {})) for r in rows.values()):
-        return ("not established: the TLS angular step is the candidate (untested in this run)",
-                "TLS angular-step experiment with conifer and broadleaf targets not run: "
-                "`snakemake --cores 2 results/experiments/tls_step.json`")
+        return _step_untested(" with conifer and broadleaf targets")
     coarse_step, fine_step = max(rows), min(rows)
 
     def contrast(step, key):
@@ -602,9 +606,8 @@ def _group_fill_cause(result, sizes) -> tuple[str, str]:
         parts.append(f"{key} m: conifer / broadleaf fill {a:.2f} at {coarse_step:g}°, {b:.2f} at {fine_step:g}°")
         if abs(math.log(b)) < abs(math.log(a)):
             supported.append(f"{key} m")
-    text = (f"TLS angular-step experiment ({result.get('plot')}, "
-            + ", ".join(f"{v['n_trees']} {g}" for g, v in sorted(rows[fine_step]["groups"].items()))
-            + " target trees, restricted field of view): " + ("; ".join(parts) if parts else "no fill contrast"))
+    trees = ", ".join(f"{v['n_trees']} {g}" for g, v in sorted(rows[fine_step]["groups"].items()))
+    text = _step_heading(result, trees) + ("; ".join(parts) if parts else "no fill contrast")
     rest = f"; {', '.join(untested + own_cells)}: not established" if untested or own_cells else ""
     if untested:
         text += f"; no fill per group for {', '.join(untested)}"
