@@ -22,7 +22,7 @@ def test_study_scenarios_run_the_helios_v1_detector(name):
     for key in ("als", "uls"):
         det = DetectorOptions.from_dict(scenarios[key].get("detector"))
         assert scenarios[key]["detector"] == {"mode": "helios_v1"}
-        assert det.peak_rule == "helios" and det.dedupe_ranges and det.atmosphere_convention == "helios"
+        assert det.peak_rule == "helios" and not det.dedupe_ranges and det.atmosphere_convention == "helios"
     # the study's tuned windows (1.75 ns ALS, 1.5 ns ULS) stay with that rule
     assert scenarios["als"]["overrides"]["window_size_ns"] == 1.75
     assert scenarios["uls"]["overrides"]["window_size_ns"] == 1.5

@@ -13,13 +13,17 @@ Detector options (the SURVEY.yaml ``detector:`` mapping)::
       mode: physical          # or helios_v1: defaults of the switches below
       peak_rule: physical     # physical | helios            (quirk 3, isolated echoes)
       two_way_time: false     # one-way time axis as HELIOS++ (quirk 1)
-      dedupe_ranges: false    # drop bit-identical sub-ray ranges (quirk 5)
+      dedupe_ranges: false    # drop a sub-ray whose range equals an earlier one (quirk 5)
       atmosphere_convention: physical   # physical | helios  (quirk 12)
       return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
 
-``mode: helios_v1`` sets ``peak_rule: helios, dedupe_ranges: true, atmosphere_convention:
-helios``; ``mode: physical`` (default) sets ``peak_rule: physical, dedupe_ranges: false,
-atmosphere_convention: physical``. The sub-ray rings sit where HELIOS++ puts them in both
+``mode: helios_v1`` sets ``peak_rule: helios, atmosphere_convention: helios``; ``mode: physical``
+(default) sets ``peak_rule: physical, atmosphere_convention: physical``. Neither mode drops
+duplicate ranges: HELIOS++ keys a pulse's sub-ray hits by their double-precision range, so two
+keys are equal only for an exact geometric tie, while ranges from Embree are single precision,
+whose rounding makes sub-rays that hit one face at ranges a few 10⁻⁵ m apart equal. Dropping
+those removes energy HELIOS++ keeps and raises the multiple-return share above HELIOS++'s
+(``benchmarks/bench_helios.py``, its ``agreement`` block). The sub-ray rings sit where HELIOS++ puts them in both
 modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² half angle, see
 :mod:`vlsforest.sim.scanner`), so a real sensor's beam is given there, not by a detector switch.
 """
@@ -44,7 +48,7 @@ from vlsforest.sim.workers import WorkerDied, fork_map
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
                      atmosphere_convention="physical", return_position="axis"),
-    "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=True,
+    "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=False,
                       atmosphere_convention="helios", return_position="axis"),
 }
 _CHOICES = {
