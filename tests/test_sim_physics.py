@@ -472,3 +472,21 @@ def test_range_noise_depends_on_the_return_alone():
     assert len(key_a) > 1000 and key_a.keys() <= key_b.keys()
     assert all(key_b[k] == v for k, v in key_a.items())
     assert np.std(a.points["xyz"][:, 2]) == pytest.approx(0.05, rel=0.1)
+
+
+@pytest.mark.parametrize("detector, outside", [({"box_test": "cone"}, True), ({"box_test": "axis"}, False),
+                                               ({"mode": "helios_v1"}, False)])
+def test_box_test_axis_skips_pulses_whose_central_ray_misses_the_scene(detector, outside):
+    """A lone 2 m square seen by a wide nadir beam along a line that runs off it: with the cone
+    test the pulses just off the square still return from its edge (the returns lie on their
+    central rays, outside the square); with the axis test (HELIOS++) only pulses whose central
+    ray meets the square's bounding box are traced."""
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-1, -1, 1, 1])
+    sv = _survey(dict(NADIR, beam_divergence_mrad=2.0), _line(-3, 3, 500.0), speed=1.0, detector=detector)
+    pt = simulate(sc, sv, workers=1).points
+    assert len(pt["xyz"]) > 100
+    beyond = np.abs(pt["xyz"][:, 1]) > 1.0 + 1e-6
+    assert beyond.any() == outside
+    if outside:  # the beam's outer rings reach the square from up to (Q−1)/Q · 2 mrad · 500 m away
+        assert np.abs(pt["xyz"][:, 1]).max() < 1.0 + 0.7

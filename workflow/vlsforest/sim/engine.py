@@ -16,9 +16,13 @@ Detector options (the SURVEY.yaml ``detector:`` mapping)::
       dedupe_ranges: false    # drop a sub-ray whose range equals an earlier one (quirk 5)
       atmosphere_convention: physical   # physical | helios  (quirk 12)
       return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
+      box_test: cone          # cone | axis: a pulse is traced when its beam cone (cone) or
+                              # its central ray (axis, HELIOS++) meets the scene's bounding box
 
-``mode: helios_v1`` sets ``peak_rule: helios, atmosphere_convention: helios``; ``mode: physical``
-(default) sets ``peak_rule: physical, atmosphere_convention: physical``. Neither mode drops
+``mode: helios_v1`` sets ``peak_rule: helios, atmosphere_convention: helios, box_test: axis``;
+``mode: physical`` (default) sets ``peak_rule: physical, atmosphere_convention: physical,
+box_test: cone``. HELIOS++ skips a pulse whose central ray misses the scene's bounding box,
+although its outer sub-rays may hit the scene's edge (quirk 13). Neither mode drops
 duplicate ranges: HELIOS++ keys a pulse's sub-ray hits by their double-precision range, so two
 keys are equal only for an exact geometric tie, while ranges from Embree are single precision,
 whose rounding makes sub-rays that hit one face at ranges a few 10⁻⁵ m apart equal. Dropping
@@ -47,14 +51,15 @@ from vlsforest.sim.workers import WorkerDied, fork_map
 
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
-                     atmosphere_convention="physical", return_position="axis"),
+                     atmosphere_convention="physical", return_position="axis", box_test="cone"),
     "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=False,
-                      atmosphere_convention="helios", return_position="axis"),
+                      atmosphere_convention="helios", return_position="axis", box_test="axis"),
 }
 _CHOICES = {
     "peak_rule": ("physical", "helios"),
     "atmosphere_convention": ("physical", "helios"),
     "return_position": ("axis", "weighted"),
+    "box_test": ("cone", "axis"),
 }
 
 
@@ -67,6 +72,7 @@ class DetectorOptions:
     dedupe_ranges: bool = False
     atmosphere_convention: str = "physical"
     return_position: str = "axis"
+    box_test: str = "cone"
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "DetectorOptions":
@@ -306,11 +312,12 @@ def _pulse_table(job: _Job, batch, n_ret) -> dict:
 
 
 def _live_rows(job: _Job, batch) -> np.ndarray:
-    """Rows of ``batch`` to trace: like HELIOS++, pulses whose beam cone misses the scene's
-    bounding box are not traced."""
+    """Rows of ``batch`` to trace: the pulses whose beam cone (``box_test: cone``) or central ray
+    (``box_test: axis``, HELIOS++) meets the scene's bounding box."""
     if len(batch) == 0:
         return np.zeros(0, np.int64)
-    return np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi, job.max_offset))
+    offset = 0.0 if job.opts.box_test == "axis" else job.max_offset
+    return np.flatnonzero(_beam_meets_box(batch.origin, batch.direction, job.box_lo, job.box_hi, offset))
 
 
 def _no_hit_pulses(job: _Job):
@@ -417,8 +424,9 @@ def _assemble(job: _Job, batch, p, ranges, amp, part, label, ret_num, n_of_ret, 
         xyz = batch.origin[p] + ranges[:, None] * batch.direction[p]
     else:
         xyz = weighted(ranges)
-    points = dict(xyz=xyz, amplitude=amp.astype(np.float32),
-                  intensity=las_intensity(amp),
+    amp32 = amp.astype(np.float32)  # the stored amplitude; the intensity follows it exactly
+    points = dict(xyz=xyz, amplitude=amp32,
+                  intensity=las_intensity(amp32),
                   return_number=np.minimum(ret_num, 15).astype(np.uint8),
                   number_of_returns=np.minimum(n_of_ret, 15).astype(np.uint8),
                   gps_time=batch.gps_time[p], scan_angle=batch.scan_angle_deg[p],
