@@ -70,14 +70,19 @@ points (object id 1), the tree points (stem 2 and crown 3), the tree's share of 
 more than one return (pulses by GPS time and flight line, as :func:`vlsforest.metrics.tree_metrics`
 counts them) and its heights above the ground (median and 99th percentile), with the bounds
 :data:`AGREEMENT` (ground points within 2 %, tree points within 10 %, the multiple-return share
-within 2 percentage points, the heights within 0.15 m) and whether each holds.
+within 2 percentage points, the heights within 0.15 m) and whether each holds. One flight
+samples the crown's voxel lattice at one set of places, and the multiple-return share of a few
+hundred ALS pulses moves by a few percentage points with that phase alone; ``--phases N`` flies
+the spruce at N pulse phases with both tools (the legs moved within a voxel, :func:`phase_case`)
+and adds ``agreement.phases``: per figure the mean difference over the phases, its standard
+error, and whether the mean lies within the bound.
 
 Linux only (``/proc``, ``os.wait4``). Rows go to ``benchmarks/results/bench_helios.jsonl``
 (``results.rows``, and flat in ``results.table``: one record per scene × survey × thread count,
 rendered by ``scripts/gen_reference.py``).
 
 Run: ``python benchmarks/bench_helios.py [--helios PATH] [--study-results results/ [--study-only]]
-[--repeats 3] [--threads 1,all] [--surveys als,uls] [--quick] [--workdir DIR]``.
+[--repeats 3] [--threads 1,all] [--surveys als,uls] [--phases N] [--quick] [--workdir DIR]``.
 """
 
 from __future__ import annotations
@@ -118,6 +123,9 @@ SCENARIOS = {
 }
 #: the spruce scene's object ids: the ground plane and the tree (stem, crown)
 GROUND_ID, TREE_IDS = 1, (2, 3)
+#: the shift of the flight lines between pulse phases (``--phases``): one crown voxel
+PHASE_STEP_M = 0.25
+
 #: bounds of the agreement of the two tools' points on the spruce: relative differences of the
 #: ground and tree point counts, the tree's multiple-return share (percentage points) and its
 #: heights above the ground (m)
@@ -355,6 +363,44 @@ def agreement(ours: dict, helios: dict) -> dict:
     return out
 
 
+def phase_case(case: dict, k: int, n: int) -> dict:
+    """The case flown ``k``-th of ``n`` pulse phases: every leg moved by ``k/n`` of a crown voxel
+    (:data:`PHASE_STEP_M`) across x and by the fractional part of ``0.618·k`` of one along y, so
+    that the pulses meet the voxel lattice at other places; its own folder and survey file."""
+    import yaml
+
+    survey = yaml.safe_load(Path(case["survey_yaml"]).read_text())
+    dx, dy = PHASE_STEP_M * k / n, PHASE_STEP_M * ((0.618 * k) % 1.0)
+    for leg in survey["platform"]["legs"]:
+        for end in ("start", "end"):
+            leg[end] = [leg[end][0] + dx, leg[end][1] + dy, leg[end][2]]
+    folder = case["folder"] / f"phase_{k}"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{case['survey']}.yaml"
+    path.write_text(yaml.safe_dump(survey, sort_keys=False))
+    return dict(case, survey_yaml=path, folder=folder, shift_m=[round(dx, 4), round(dy, 4)])
+
+
+def phase_agreement(pairs: list[tuple[dict, dict]]) -> dict:
+    """Mean and standard error over pulse phases of each :data:`AGREEMENT` difference (ours − HELIOS++;
+    counts relative), and whether the mean lies within the bound."""
+    import numpy as np
+
+    out = {"n_phases": len(pairs)}
+    for key, bound in AGREEMENT.items():
+        diffs = []
+        for ours, helios in pairs:
+            a, b = ours.get(key), helios.get(key)
+            if a is not None and b is not None:
+                diffs.append((a - b) / b if key.endswith("_points") and b else a - b)
+        if len(diffs) >= 2:
+            d = np.asarray(diffs)
+            mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))
+            out[key] = {"mean_diff": round(mean, 4), "se": round(se, 4), "diffs": [round(float(x), 4) for x in d],
+                        "within": bool(abs(mean) <= bound)}
+    return out
+
+
 # ----------------------------------------------------------------------------- scenes
 def _vlsforest(*args) -> list[str]:
     return [sys.executable, "-m", "vlsforest.cli", *map(str, args)]
@@ -560,7 +606,14 @@ def flat(row: dict) -> dict:
     for k, v in row.items():
         if isinstance(v, dict):
             for kk, vv in v.items():
-                if kk not in ("command", "point_files", "points", "vlsforest", "helios"):
+                if kk == "phases":
+                    out[f"{k}.phases.n"] = vv["n_phases"]
+                    for key in AGREEMENT:
+                        if key in vv:
+                            out[f"{k}.phases.{key}_mean_diff"] = vv[key]["mean_diff"]
+                            out[f"{k}.phases.{key}_se"] = vv[key]["se"]
+                            out[f"{k}.phases.{key}_within"] = vv[key]["within"]
+                elif kk not in ("command", "point_files", "points", "vlsforest", "helios"):
                     out[f"{k}.{kk}"] = vv
         else:
             out[k] = v
@@ -617,6 +670,15 @@ def _table(rows: list[dict]) -> str:
                     parts.append(f"{key} {ag['vlsforest'][key]} vs {ag['helios'][key]} ({txt}, "
                                  f"{'within' if ag[f'{key}_within'] else 'OUTSIDE'})")
             lines.append("  agreement: " + "; ".join(parts))
+            ph = ag.get("phases")
+            if ph:
+                parts = []
+                for key, bound in AGREEMENT.items():
+                    if key in ph:
+                        m, se = ph[key]["mean_diff"], ph[key]["se"]
+                        txt = (f"{100 * m:+.1f} ± {100 * se:.1f} %" if key.endswith("_points") else f"{m:+.2f} ± {se:.2f}")
+                        parts.append(f"{key} {txt} ({'within' if ph[key]['within'] else 'OUTSIDE'})")
+                lines.append(f"  over {ph['n_phases']} pulse phases (mean ± SE): " + "; ".join(parts))
     lines.append("medians of the repeats; ×wall, ×CPU: HELIOS++'s seconds ÷ ours (above 1: we are faster); "
                  "RSS: the largest process")
     return "\n".join(lines)
@@ -638,6 +700,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per measurement, median kept (default 3)")
     ap.add_argument("--warmup", type=int, default=1,
                     help="untimed runs before the timed ones: ours per case, HELIOS++ on the first case (default 1)")
+    ap.add_argument("--phases", type=int, default=0,
+                    help="on the spruce also fly N−1 more pulse phases (legs shifted within a voxel) with both tools "
+                         "and judge the agreement on the mean over all N (default 0: the one flight)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="small ground and short surveys of the spruce (tests)")
     ap.add_argument("--workdir", type=Path, help="keep the scenes, exports and logs here (default: a temporary folder)")
@@ -654,8 +719,8 @@ def _main(args) -> int:
     if not surveys or set(surveys) - set(SURVEYS):
         raise BenchError(f"--surveys takes {', '.join(SURVEYS)}, got {args.surveys!r}")
     threads = _threads(args.threads)
-    if args.repeats < 1 or args.warmup < 0:
-        raise BenchError("--repeats must be ≥ 1 and --warmup ≥ 0")
+    if args.repeats < 1 or args.warmup < 0 or args.phases < 0 or args.phases == 1:
+        raise BenchError("--repeats must be ≥ 1, --warmup ≥ 0 and --phases 0 or ≥ 2")
     binary = None
     if args.helios:
         binary = shutil.which(args.helios) or args.helios
@@ -703,6 +768,20 @@ def _main(args) -> int:
                     helios = run_helios(case, binary, version, t, args.seed, args.repeats, args.helios_arg)
                 rows.append(row_of(case, t, ours, helios, note))
                 print(f"  done: {case['scene']} {case['survey']} threads {t}", flush=True)
+            last = rows[-1]
+            if args.phases and "ground_z" in case and last.get("agreement"):
+                pairs = [(last["agreement"]["vlsforest"], last["agreement"]["helios"])]
+                shifts = [[0.0, 0.0]]
+                for k in range(1, args.phases):
+                    pc = phase_case(case, k, args.phases)
+                    if export(pc) is None:
+                        o = run_ours(pc, max(threads), args.seed, 1)
+                        h = run_helios(pc, binary, version, max(threads), args.seed, 1, args.helios_arg)
+                        if o.get("points") and h.get("points"):
+                            pairs.append((o["points"], h["points"]))
+                            shifts.append(pc["shift_m"])
+                last["agreement"]["phases"] = dict(phase_agreement(pairs), shifts_m=shifts)
+                print(f"  done: {case['scene']} {case['survey']} {len(pairs)} pulse phases", flush=True)
     print()
     print(f"Summary ({len(os.sched_getaffinity(0))} CPUs usable; startup of the simulator "
           f"{startup if startup is not None else '-'} s)")

@@ -232,3 +232,41 @@ def test_point_summary_and_agreement_by_hand():
     assert a["ground_points_diff"] == pytest.approx(0.01) and a["ground_points_within"]
     assert a["tree_multi_return_pct_diff"] == pytest.approx(-3.0) and not a["tree_multi_return_pct_within"]
     assert a["tree_height_p99_m_diff"] == pytest.approx(-0.04) and a["tree_height_p99_m_within"]
+
+
+def test_phase_agreement_judges_the_mean_over_phases_by_hand():
+    """Three phases whose multiple-return shares differ by +3, −1 and +1 pp: the mean +1 pp is
+    within the 2 pp bound although one phase alone is not; SE = sd / √3 = 2 / √3."""
+    bench = _load()
+    base = {"ground_points": 100, "tree_points": 50, "tree_multi_return_pct": 20.0,
+            "tree_height_p50_m": 10.0, "tree_height_p99_m": 20.0}
+    pairs = [(dict(base, tree_multi_return_pct=23.0, ground_points=103), base),
+             (dict(base, tree_multi_return_pct=19.0, ground_points=101), base),
+             (dict(base, tree_multi_return_pct=21.0, ground_points=101), base)]
+    ph = bench.phase_agreement(pairs)
+    assert ph["n_phases"] == 3
+    mr = ph["tree_multi_return_pct"]
+    assert mr["diffs"] == [3.0, -1.0, 1.0] and mr["mean_diff"] == pytest.approx(1.0) and mr["within"]
+    assert mr["se"] == pytest.approx(2.0 / np.sqrt(3.0), abs=1e-4)
+    # counts relative to HELIOS++'s: +3 %, +1 %, +1 % → mean +1.67 %, within the 2 % bound
+    assert ph["ground_points"]["mean_diff"] == pytest.approx(0.0167, abs=1e-4) and ph["ground_points"]["within"]
+    assert ph["tree_height_p50_m"]["mean_diff"] == 0.0
+
+
+def test_phase_case_moves_every_leg_within_a_voxel(tmp_path):
+    import yaml
+
+    bench = _load()
+    legs = [{"start": [0.0, -10.0, 100.0], "end": [0.0, 10.0, 100.0], "active": True},
+            {"start": [0.0, 10.0, 100.0], "end": [5.0, 10.0, 100.0], "active": False}]
+    survey = tmp_path / "als.yaml"
+    survey.write_text(yaml.safe_dump({"scanner": "riegl_vq780i", "platform": {"type": "linear", "legs": legs}}))
+    case = {"survey": "als", "survey_yaml": survey, "folder": tmp_path, "scene": "s"}
+    pc = bench.phase_case(case, 2, 4)
+    dx, dy = pc["shift_m"]
+    assert dx == pytest.approx(0.125) and dy == pytest.approx(0.25 * ((0.618 * 2) % 1.0), abs=1e-4)
+    moved = yaml.safe_load(pc["survey_yaml"].read_text())["platform"]["legs"]
+    for a, b in zip(legs, moved):
+        for end in ("start", "end"):
+            assert b[end] == pytest.approx([a[end][0] + dx, a[end][1] + dy, a[end][2]], abs=1e-4)
+    assert pc["folder"] == tmp_path / "phase_2" and yaml.safe_load(survey.read_text())["platform"]["legs"] == legs
