@@ -90,6 +90,20 @@ def test_cli_bad_config_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "x.json").exists()
 
 
+@pytest.mark.parametrize("option, values", [("--cells", ["0.1", "0"]), ("--band", ["0"]), ("--steps", ["0"])])
+def test_cli_bad_option_names_the_option(tmp_path, capsys, option, values):
+    from vlsforest.cli import main
+
+    out = tmp_path / "x.json"
+    argv = ["experiment", "tls-step", "--config-json", '{"forest": {"preset": "quick"}}', "--plot", "Q1",
+            option, *values, "-o", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"vlsforest experiment: error: {option}: ") and "\n" not in err
+    assert "_m" not in err
+    assert not out.exists()
+
+
 @pytest.mark.e2e
 def test_recording_detector_helios_rule_drops_isolated_echoes():
     """On the quick forest's ULS (one grid): HELIOS++ 1.0.8's peak rule, which also requires the

@@ -1,4 +1,4 @@
-"""Tests of the AMAPVox ``.vox`` and triangle-mesh (OBJ/PLY) readers and writers."""
+"""Tests of the AMAPVox ``.vox`` and triangle-mesh (OBJ/PLY) readers and writers, and of the CSV table reader."""
 
 from __future__ import annotations
 
@@ -523,3 +523,33 @@ def test_las_flag_fields_round_trip_as_standard_fields(tmp_path):
     assert list(laspy.read(tmp_path / "a.las").point_format.extra_dimension_names) == []
     write_las(tmp_path / "b.las", back)
     assert list(laspy.read(tmp_path / "b.las").point_format.extra_dimension_names) == []
+
+
+# ==========================================================================================
+# CSV tables
+# ==========================================================================================
+def test_read_csv_table_reads_the_columns(tmp_path):
+    from vlsforest.io.csvfile import read_csv_table
+
+    path = tmp_path / "t.csv"
+    path.write_text("tree_id,x\n7,1.5\n8,2.5\n")
+    df = read_csv_table(path, "tree table", ("tree_id", "x"))
+    assert list(df.columns) == ["tree_id", "x"] and df["x"].tolist() == [1.5, 2.5]
+
+
+@pytest.mark.parametrize("content, needle", [
+    (None, "t.csv: no such tree table"),
+    (b"", "t.csv: not a readable CSV (No columns to parse from file)"),
+    (b"tree_id,x\n1,2\n1,2,3,4\n", "t.csv: not a readable CSV (Error tokenizing data."),
+    (b"tree_id,y\n1,2\n", "t.csv: tree table lacks column(s) ['x']"),
+])
+def test_read_csv_table_errors_are_one_line_naming_the_file(tmp_path, content, needle):
+    from vlsforest.io.csvfile import read_csv_table
+
+    path = tmp_path / "t.csv"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(InputDataError) as err:
+        read_csv_table(path, "tree table", ("tree_id", "x"))
+    msg = str(err.value)
+    assert msg.startswith(str(path)) and needle in msg and "\n" not in msg

@@ -185,9 +185,9 @@ def test_io_package_names_resolve_to_their_modules_on_first_use():
     import vlsforest.io as vio
 
     for name in vio.__all__:
-        home = importlib.import_module(f"vlsforest.io.{vio._HOMES[name]}")
+        home = importlib.import_module(f"vlsforest.io.{vio.HOMES[name]}")
         assert getattr(vio, name) is getattr(home, name), name
-    assert set(vio._HOMES) == set(vio.__all__)
+    assert set(vio.HOMES) == set(vio.__all__)
     with pytest.raises(AttributeError, match="no_such_name"):
         vio.no_such_name
     code = ("import sys, vlsforest.cli; "

@@ -271,6 +271,54 @@ def test_restyled_copy_plans_and_grows_on_its_own():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("content, needle", [
+    (None, "no such voxel centres file"),
+    ("x,y,z\n0.1,0.1\n0.1,0.1,0.1,0.1,0.1\n", "not a readable CSV"),
+    ("x,y\n0.1,0.1\n", "needs columns x, y, z"),
+])
+def test_bad_voxel_centres_csv_names_the_file(tmp_path, content, needle):
+    if content is not None:
+        (tmp_path / "c.csv").write_text(content)
+    cfg = {"parts": [{"id": 1, "type": "voxels", "path": "c.csv", "size": 0.2}]}
+    with pytest.raises(InputDataError, match="c.csv: " + needle):
+        Scene.from_dict(cfg, base_dir=tmp_path)
+
+
+def test_bad_trajectory_csv_is_one_line(tmp_path, capsys):
+    (tmp_path / "traj.csv").write_text("gps_time,x\n0,1\n0,1,2\n")
+    out = tmp_path / "survey.yaml"
+    rc = main(["plan", "--trajectory", str(tmp_path / "traj.csv"), "--scenario-json",
+               '{"pattern": "trajectory", "scanner": "riegl_vq780i"}', "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err
+    assert err.startswith(f"vlsforest plan: error: {tmp_path / 'traj.csv'}: not a readable CSV")
+    assert not out.exists()
+
+
+def test_targets_table_without_tree_id_is_one_line(tmp_path, capsys):
+    (tmp_path / "targets.csv").write_text("target_id,z\n301,0.0\n")
+    out = tmp_path / "crowns.npz"
+    rc = main(["scene", "crowns", str(tmp_path), "--stems", str(tmp_path), "--targets", str(tmp_path / "targets.csv"),
+               "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err
+    assert err == f"vlsforest scene: error: {tmp_path / 'targets.csv'}: targets table lacks column(s) ['tree_id']"
+    assert not out.exists()
+
+
+def test_restyled_keeps_the_subclass():
+    from vlsforest.sim import Material
+
+    class Sub(Scene):
+        pass
+
+    sc = Sub()
+    sc.add_plane(1, 0.0, (-5, -5, 5, 5))
+    other = sc.restyled({1: Material(0.1)})
+    assert type(other) is Sub
+    assert other.parts[0].material.reflectance == 0.1
+
+
 def test_one_worker_traces_the_grid_on_one_cpu(monkeypatch):
     """``workers=1`` (a one-thread workflow job) runs the voxel-grid kernel without threads, then
     restores the module's setting; the points equal those of two worker processes."""

@@ -91,10 +91,11 @@ def run(args) -> int:
             print(f"vlsforest experiment recording-detector: {v['name']}: conifer {v['conifer']['mean_pct']:.1f} %, "
                   f"broadleaf {v['broadleaf']['mean_pct']:.1f} %")
         return 0
-    from vlsforest.experiments.tls_step import run_tls_step
+    from vlsforest.experiments.tls_step import check_arguments, run_tls_step
 
     if args.trees is not None and args.trees < 1:
         raise ConfigError(f"--trees: must be ≥ 1, got {args.trees}")
+    check_arguments(args.steps, args.band, args.cells, names=("--steps", "--band", "--cells"))
     res = run_tls_step(cfg, args.plot, args.steps, seed=seed, trees=args.trees, band_m=args.band,
                        cells_m=args.cells, progress=_log("tls-step"))
     write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")

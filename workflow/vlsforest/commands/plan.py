@@ -48,20 +48,13 @@ def run(args) -> int:
     if not isinstance(scenario, dict):
         raise ConfigError("the scenario must be a mapping")
     if scenario.get("pattern") == "trajectory" or args.trajectory:
-        import pandas as pd
-
-        from vlsforest.errors import InputDataError
+        from vlsforest.io.csvfile import read_csv_table
         from vlsforest.sim.planning import survey_from_trajectory
 
         if not args.trajectory:
             raise ConfigError("pattern 'trajectory' needs --trajectory CSV")
         tpath = Path(args.trajectory)
-        if not tpath.is_file():
-            raise InputDataError(f"{tpath}: no such trajectory file")
-        try:
-            traj = pd.read_csv(tpath)
-        except Exception as exc:
-            raise InputDataError(f"{tpath}: not a readable CSV ({exc})") from None
+        traj = read_csv_table(tpath, "trajectory file")
         survey = survey_from_trajectory(scenario, traj, source=str(tpath))
     else:
         if not args.scene:

@@ -75,23 +75,6 @@ def register(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def _read_csv(path: Path, cols, what):
-    import pandas as pd
-
-    from vlsforest.errors import InputDataError
-
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such {what}")
-    try:
-        df = pd.read_csv(path)
-    except Exception as exc:
-        raise InputDataError(f"{path}: not a readable CSV ({exc})") from None
-    missing = set(cols) - set(df.columns)
-    if missing:
-        raise InputDataError(f"{path}: {what} lacks column(s) {sorted(missing)}")
-    return df
-
-
 def _json(path: Path, what):
     from vlsforest.errors import InputDataError
 
@@ -109,12 +92,13 @@ def run(args) -> int:
 
     from vlsforest.errors import ConfigError, InputDataError
     from vlsforest.io.atomic import flush, write_csv, write_text
+    from vlsforest.io.csvfile import read_csv_table
     from vlsforest.io.las import read_las
 
     if args.what == "targets":
         from vlsforest.extract import match_targets
 
-        trees = _read_csv(args.segment / "trees.csv", ("tree_id", "x", "y", "z"), "tree table")
+        trees = read_csv_table(args.segment / "trees.csv", "tree table", ("tree_id", "x", "y", "z"))
         info = _json(args.plot_json, "plot description")
         if not isinstance(info, dict) or not info.get("targets"):
             raise InputDataError(f"{args.plot_json}: needs a non-empty 'targets' list")
@@ -139,7 +123,7 @@ def run(args) -> int:
         from vlsforest.scene import crown_points
         from vlsforest.io.npz import save_npz
 
-        targets = _read_csv(args.targets, ("tree_id",), "targets table")
+        targets = read_csv_table(args.targets, "targets table", ("tree_id",))
         seg = read_las(args.segment / "segmented.laz", require=("tree_id",))
         stems = {}
         for t in targets.tree_id.astype(int):
@@ -153,7 +137,7 @@ def run(args) -> int:
         from vlsforest.scene import assemble_scene, export_helios
         from vlsforest.io.voxel_model import VoxelModel
 
-        targets = _read_csv(args.targets, ("tree_id",), "targets table")
+        targets = read_csv_table(args.targets, "targets table", ("tree_id",))
         site = _json(args.site, "site description")
         model = VoxelModel.load(args.voxels)
         stems = {int(t): args.stems / str(int(t)) / "stem.obj" for t in targets.tree_id}

@@ -31,19 +31,17 @@ from vlsforest.io.las import PointCloud
 from vlsforest.metrics import tree_metrics
 from vlsforest.sim.engine import simulate
 from vlsforest.sim.survey import survey_from_dict
-from vlsforest.synth.forest import forest_from_config, generate_plot_trees
+from vlsforest.synth.forest import generate_plot_trees, plot_layout
 from vlsforest.synth.record import (
     DEFAULT_RECORDING_PHYSICS,
     airborne_survey,
     plot_scene,
+    recording_region,
     synth_settings,
     validate_recording_physics,
 )
 
-__all__ = ["REGION_PAD_M", "run_recording_detector"]
-
-#: the recordings trace the pulses that reach the plot ± this (m), as `vlsforest synth` does
-REGION_PAD_M = 3.0
+__all__ = ["run_recording_detector"]
 
 
 def _tree_shares(points, targets, geoms) -> dict:
@@ -100,10 +98,7 @@ def run_recording_detector(cfg: dict | None, plot: str, sensor: str, variants: d
     if not isinstance(variants, dict) or "recording" in variants:
         raise ConfigError("variants: a mapping of names (not 'recording') to recording-physics keys")
     st = synth_settings(cfg)
-    layouts = {p.name: p for p in forest_from_config(st["forest"], seed)}
-    if plot not in layouts:
-        raise ConfigError(f"plot: unknown plot {plot!r} (known: {', '.join(layouts)})")
-    lay = layouts[plot]
+    lay = plot_layout(st["forest"], seed, plot)
     base = validate_recording_physics(DEFAULT_RECORDING_PHYSICS)
     runs = {"recording": {}}
     for name, keys in variants.items():
@@ -112,11 +107,10 @@ def run_recording_detector(cfg: dict | None, plot: str, sensor: str, variants: d
         validate_recording_physics(phys, where=f"variants.{name}")
         runs[str(name)] = keys or {}
     geoms = generate_plot_trees(lay)
-    targets = sorted(t.tree_id for t in lay.trees if t.target)
+    targets = sorted(lay.target_ids())
     if not targets:
         raise ConfigError(f"plot {plot}: no target trees")
-    xmin, ymin, xmax, ymax = lay.extent
-    region = (xmin - REGION_PAD_M, ymin - REGION_PAD_M, xmax + REGION_PAD_M, ymax + REGION_PAD_M)
+    region = recording_region(lay)  # as `vlsforest synth` records the plot
     shares, rows = {}, []
     for name, keys in runs.items():
         phys = copy.deepcopy(base)

@@ -46,14 +46,13 @@ import numpy as np
 from vlsforest.domain.species import species_group
 from vlsforest.errors import ConfigError
 from vlsforest.sim.engine import simulate
-from vlsforest.sim.scanner import PRESETS
 from vlsforest.sim.survey import survey_from_dict
-from vlsforest.synth.forest import forest_from_config, generate_plot_trees
-from vlsforest.synth.record import DEFAULT_RECORDING_PHYSICS, physics_overrides, plot_scene, synth_settings, tls_positions
+from vlsforest.synth.forest import generate_plot_trees, plot_layout
+from vlsforest.synth.record import DEFAULT_RECORDING_PHYSICS, plot_scene, synth_settings, tls_positions, tls_survey
 from vlsforest.voxels import cell_centroids
 
-__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "cell_key", "cog_offsets", "filled_cells", "fill",
-           "tree_fov", "run_tls_step"]
+__all__ = ["FINE_CELL_M", "COARSE_CELL_M", "FOV_MARGIN_DEG", "cell_key", "check_arguments", "cog_offsets",
+           "filled_cells", "fill", "tree_fov", "run_tls_step"]
 
 #: cell of the study's finest fixed voxels (m)
 FINE_CELL_M = 0.02
@@ -186,16 +185,47 @@ def tree_fov(position, corners: np.ndarray, v_limits) -> dict | None:
     return {"heading_deg": heading, "h_half_deg": min(half, 180.0), "v_fov_deg": [lo, hi]}
 
 
+def check_arguments(steps, band_m=None, cells_m=(), names=("steps", "band_m", "cells_m")):
+    """The steps and the further cell sizes of :func:`run_tls_step`, checked.
+
+    Parameters
+    ----------
+    steps, band_m, cells_m
+        As :func:`run_tls_step` takes them.
+    names : (str, str, str)
+        What the caller calls ``steps``, ``band_m`` and ``cells_m`` (e.g. a command's options
+        ``--steps``, ``--band``, ``--cells``); the messages name them so.
+
+    Returns
+    -------
+    steps : list of float
+    cells : list of float
+        ``cells_m`` as floats.
+
+    Raises
+    ------
+    ConfigError
+        No step, a step that is not > 0, a band that is not > 0, or a cell size that is not
+        finite and > 0.
+    """
+    steps_name, band_name, cells_name = names
+    if band_m is not None and not band_m > 0:
+        raise ConfigError(f"{band_name}: must be > 0 m, got {band_m!r}")
+    steps = [float(s) for s in steps]
+    if not steps or any(not (s > 0) for s in steps):
+        raise ConfigError(f"{steps_name}: every step must be > 0 degrees, got {steps}")
+    cells = [float(c) for c in cells_m]
+    if any(not (c > 0 and math.isfinite(c)) for c in cells):
+        raise ConfigError(f"{cells_name}: every cell size must be > 0 m, got {list(cells_m)}")
+    return steps, cells
+
+
 def _scan(scene, pos, fov, step, tls_cfg, physics, seed):
-    ov = {"tls_h_fov_deg": [-fov["h_half_deg"], fov["h_half_deg"]], "tls_v_fov_deg": fov["v_fov_deg"],
-          "tls_h_step_deg": float(step), "tls_v_step_deg": float(step),
-          "beam_sample_quality": int(tls_cfg["beam_sample_quality"])}
-    pov, _ = physics_overrides(physics, PRESETS["riegl_vz400"].beam.divergence_mrad)
-    ov.update(pov)
-    survey = survey_from_dict({
-        "scanner": "riegl_vz400", "overrides": ov, "seed": int(seed), "detector": {"mode": "physical"},
-        "platform": {"type": "static", "positions": [{"position": list(pos["position"]),
-                                                      "heading_deg": fov["heading_deg"], "tilt_deg": 0.0}]}})
+    """One recordings' TLS scan (:func:`vlsforest.synth.record.tls_survey`) from ``pos``, turned to
+    the box of :func:`tree_fov` and at ``step`` degrees."""
+    cfg = dict(tls_cfg, h_fov_deg=2.0 * fov["h_half_deg"], v_fov_deg=fov["v_fov_deg"], step_deg=float(step))
+    at = {"position": list(pos["position"]), "heading_deg": fov["heading_deg"], "tilt_deg": 0.0}
+    survey = survey_from_dict(tls_survey(at, cfg, physics, int(seed)))
     return simulate(scene, survey, workers=1, keep_pulses=False)
 
 
@@ -240,22 +270,12 @@ def run_tls_step(cfg: dict | None, plot: str, steps, *, seed: int = 0, trees: in
     ConfigError
         An unknown plot, a plot without target trees, a step or band that is not positive.
     """
-    if band_m is not None and not band_m > 0:
-        raise ConfigError(f"band_m: must be > 0 m, got {band_m!r}")
-    steps = [float(s) for s in steps]
-    if not steps or any(not (s > 0) for s in steps):
-        raise ConfigError(f"steps: every step must be > 0 degrees, got {steps}")
-    extra = [float(c) for c in cells_m]
-    if any(not (c > 0 and math.isfinite(c)) for c in extra):
-        raise ConfigError(f"cells_m: every cell size must be > 0 m, got {list(cells_m)}")
+    steps, extra = check_arguments(steps, band_m, cells_m)
     sizes = sorted({FINE_CELL_M, COARSE_CELL_M, *extra})
     st = synth_settings(cfg)
-    layouts = {p.name: p for p in forest_from_config(st["forest"], seed)}
-    if plot not in layouts:
-        raise ConfigError(f"plot: unknown plot {plot!r} (known: {', '.join(layouts)})")
-    lay = layouts[plot]
+    lay = plot_layout(st["forest"], seed, plot)
     geoms = generate_plot_trees(lay)
-    targets = sorted(t.tree_id for t in lay.trees if t.target)
+    targets = sorted(lay.target_ids())
     if trees is not None:
         targets = targets[: int(trees)]
     if not targets:

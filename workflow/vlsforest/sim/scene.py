@@ -163,12 +163,18 @@ class Scene:
         ----------
         materials : dict
             Object id → :class:`Material` for the parts to change (others keep theirs).
+
+        Returns
+        -------
+        Scene
+            Of the class of this scene (a subclass gives its own class); its ``__init__`` is not
+            called, so it holds the attributes of :class:`Scene` only.
         """
         unknown = set(materials) - {p.object_id for p in self.parts}
         if unknown:
             raise ConfigError(f"restyled: no part with object id(s) {sorted(unknown)}")
         self.prepare()
-        other = Scene.__new__(Scene)
+        other = type(self).__new__(type(self))
         other.parts = [ScenePart(p.object_id, p.kind, materials.get(p.object_id, p.material), p.classification,
                                  p.name) for p in self.parts]
         other.geometry = self.geometry.copy()
@@ -270,7 +276,10 @@ class Scene:
 
     @property
     def uses_embree(self) -> bool:
-        """Whether meshes (and planes, and small voxel sets) are traced with Embree."""
+        """Whether anything is traced with Embree: a mesh or plane, or a voxel set that the routing
+        (:func:`vlsforest.sim.routing.route_voxels`: the scene's ``voxel_backend`` and, under
+        ``auto``, the cubes of its lattice and the rays planned by :meth:`plan_for_rays`) gives to
+        Embree."""
         return self.tracer.uses_embree
 
     @property

@@ -26,11 +26,17 @@ cube never outgrows its cell (HELIOS++ lets it, quirk 9), voxels with PAD 0 or N
 cube, and ``random_shift`` moves each cube by ``U(−1, 1)·(res/2 − half)`` per axis with the
 part's own seed.
 
-Voxel back-ends (top-level ``voxel_backend``, :mod:`vlsforest.sim.routing`): ``auto`` (default)
-gives voxel sets of up to 300 000 cubes to Embree as 12 triangles per cube (fastest for small
-models) and traces larger ones with a sparse two-level grid and a 3-D DDA (no triangles, so
-tens of millions of voxels fit in memory); ``embree`` and ``grid`` force one back-end. Both
-give the same hits.
+Voxel back-ends (top-level ``voxel_backend``, :mod:`vlsforest.sim.routing`): Embree, with 12
+triangles per cube, or a sparse two-level grid walked by a 3-D DDA (no triangles, so tens of
+millions of voxels fit in memory); ``embree`` and ``grid`` send every voxel set to one of them.
+``auto`` (default) decides per voxel lattice (the voxel sets of one cell size and congruent
+origin, counted together; :func:`~vlsforest.sim.routing.embree_pays`): with the number of rays
+to trace known (:meth:`vlsforest.sim.scene.Scene.plan_for_rays`; the simulator estimates it from
+the survey), a lattice goes to Embree when the time Embree saves on those rays exceeds its build
+time by a margin, and never with more than :data:`~vlsforest.sim.routing.EMBREE_VOXEL_MAX`
+cubes; without it, a lattice goes to Embree up to
+:data:`~vlsforest.sim.routing.EMBREE_VOXEL_LIMIT` cubes. The two back ends give the same hits up
+to rays that graze a cube's edge or corner.
 
 Embree's robust traversal (top-level ``embree_robust``, default true): off, leaf-level scenes
 trace ≈ 16 % faster and many more rays that meet a shared edge or vertex slip through the surface
@@ -48,6 +54,7 @@ import numpy as np
 
 from vlsforest.domain.cubes import scaled_cubes
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.csvfile import read_csv_table
 from vlsforest.io.voxel_model import VoxelModel
 from vlsforest.sim.scene_geometry import Material
 
@@ -259,19 +266,12 @@ def _read_points(path: Path) -> np.ndarray:
         from vlsforest.io.las import read_las
 
         return read_las(path).xyz
-    cen, _ = _read_centres(path)
+    cen, _ = _read_centres(path, "points file")
     return cen
 
 
-def _read_centres(path: Path):
-    import pandas as pd
-
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such file")
-    try:
-        df = pd.read_csv(path)
-    except Exception as exc:
-        raise InputDataError(f"{path}: not a readable CSV ({exc})") from None
+def _read_centres(path: Path, what: str = "voxel centres file"):
+    df = read_csv_table(path, what)
     cols = {c.strip().lower(): c for c in df.columns}
     if not {"x", "y", "z"} <= set(cols):
         raise InputDataError(f"{path}: needs columns x, y, z (and optionally size)")

@@ -9,8 +9,8 @@
   voxel on any grid (validation of PAD estimates);
 * :mod:`~vlsforest.synth.ground` — :class:`GroundSurface`, the gently rough plot terrain;
 * :mod:`~vlsforest.synth.forest` — plot layouts of the virtual Bretten forest
-  (:func:`forest_from_config`, :class:`PlotLayout`, :class:`TreeSpec`), their geometry
-  (:func:`generate_plot_trees`) and truth (:func:`truth_table`).
+  (:func:`forest_from_config`, one plot's :func:`plot_layout`, :class:`PlotLayout`,
+  :class:`TreeSpec`), their geometry (:func:`generate_plot_trees`) and truth (:func:`truth_table`).
 """
 
 from vlsforest.synth.forest import (
@@ -20,6 +20,7 @@ from vlsforest.synth.forest import (
     TreeSpec,
     forest_from_config,
     generate_plot_trees,
+    plot_layout,
     stem_meshes,
     truth_table,
 )
@@ -48,5 +49,5 @@ __all__ = [
     "sample_tree_params", "target_tree_params", "TreeGeometry", "TriMesh", "generate_tree",
     "ORGAN_STEM", "ORGAN_BRANCH", "ORGAN_FOLIAGE", "PlantAreaGrid", "true_plant_area",
     "GroundSurface", "DEFAULT_FOREST", "QUICK_FOREST", "PlotLayout", "TreeSpec",
-    "forest_from_config", "generate_plot_trees", "truth_table", "stem_meshes",
+    "forest_from_config", "plot_layout", "generate_plot_trees", "truth_table", "stem_meshes",
 ]

@@ -735,6 +735,32 @@ def forest_from_config(cfg: dict, seed: int) -> list[PlotLayout]:
     return [_layout_plot(pc, opts, int(seed)) for pc in pcs]
 
 
+def plot_layout(cfg: dict, seed: int, plot: str) -> PlotLayout:
+    """The layout of one plot of the virtual forest.
+
+    Parameters
+    ----------
+    cfg, seed
+        As :func:`forest_from_config` takes them.
+    plot : str
+        The plot's name.
+
+    Returns
+    -------
+    PlotLayout
+        The plot's layout, the same as in the whole forest's.
+
+    Raises
+    ------
+    ConfigError
+        An invalid forest, or a plot that is not in it (``plot: unknown plot …``, naming the plots).
+    """
+    layouts = {p.name: p for p in forest_from_config(cfg, seed)}
+    if plot not in layouts:
+        raise ConfigError(f"plot: unknown plot {plot!r} (known: {', '.join(layouts)})")
+    return layouts[plot]
+
+
 def layouts_from_settings(path) -> list[PlotLayout]:
     """The plot layouts of a recorded forest, rebuilt from its ``synth_settings.yaml``.
 
@@ -854,5 +880,5 @@ def stem_meshes(geometries: dict[int, TreeGeometry]) -> dict[int, TriangleMesh]:
 
 
 __all__ = ["TreeSpec", "PlotLayout", "DEFAULT_FOREST", "QUICK_FOREST", "STUDY_AREAS_HA",
-           "TRUTH_COLUMNS", "forest_from_config", "generate_plot_trees", "truth_table",
+           "TRUTH_COLUMNS", "forest_from_config", "plot_layout", "generate_plot_trees", "truth_table",
            "stem_meshes", "tree_rng"]

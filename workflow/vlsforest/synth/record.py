@@ -63,6 +63,8 @@ from vlsforest.sim.scene import Material, Scene
 from vlsforest.sim.survey import survey_from_dict
 
 WOOD, FOLIAGE = 1, 2
+#: the airborne recordings trace the pulses that reach the plot ± this (m; :func:`recording_region`)
+RECORDING_PAD_M = 3.0
 
 DEFAULT_RECORDING_PHYSICS = {
     "als": {
@@ -378,7 +380,28 @@ def tls_positions(plot, cfg: dict, geometries: dict | None = None) -> list[dict]
     return out
 
 
-def _tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
+def tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
+    """Survey mapping of one TLS scan of the recordings (the VZ-400, static).
+
+    Parameters
+    ----------
+    pos : dict
+        The scan position as :func:`tls_positions` gives it (``position``, ``heading_deg``,
+        ``tilt_deg``).
+    cfg : dict
+        The ``tls`` block of :func:`synth_settings`; its ``h_fov_deg`` (centred on the heading),
+        ``v_fov_deg``, ``step_deg`` (horizontal and vertical) and ``beam_sample_quality`` are read.
+    physics : dict
+        The TLS block of the recording physics (:func:`physics_overrides`; its peak rule sets the
+        detector).
+    seed : int
+        The scan's seed.
+
+    Returns
+    -------
+    dict
+        A mapping for :func:`vlsforest.sim.survey.survey_from_dict`.
+    """
     half = cfg["h_fov_deg"] / 2.0
     ov = {"tls_h_fov_deg": [-half, half], "tls_v_fov_deg": list(cfg["v_fov_deg"]),
           "tls_h_step_deg": cfg["step_deg"], "tls_v_step_deg": cfg["step_deg"],
@@ -469,7 +492,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
         rows = []
         gps = 0.0
         for k, pos in enumerate(tls_positions(plot, tls_cfg, geometries), start=1):
-            sv = _tls_survey(pos, tls_cfg, physics.get("tls", {}), seed + 101 * k)
+            sv = tls_survey(pos, tls_cfg, physics.get("tls", {}), seed + 101 * k)
             survey = survey_from_dict(sv)
             res = simulate(scene, survey, workers=workers, keep_pulses=False)
             # one scan = one source id: the scan number
@@ -502,7 +525,7 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
             survey = survey_from_dict(sv)
             # pulses are traced where they reach the plot (+ a small pad): the recording covers
             # the plot, the trees around it still occlude and reflect
-            res = simulate(scene, survey, workers=workers, keep_pulses=False, region=_recording_region(plot))
+            res = simulate(scene, survey, workers=workers, keep_pulses=False, region=recording_region(plot))
             res.points["gps_time"] = res.points["gps_time"] + gps
             res.points["point_source_id"] = (res.points["point_source_id"].astype(np.int64) + 100 * r).astype(np.uint16)
             tr = survey.trajectory()
@@ -521,7 +544,14 @@ def record_plot(plot, geometries: dict, out: Path, physics: dict, tls_cfg: dict,
     return timings
 
 
-def _recording_region(plot, pad: float = 3.0):
+def recording_region(plot, pad: float = RECORDING_PAD_M) -> tuple[float, float, float, float]:
+    """Where the airborne recordings trace their pulses: the plot's extent grown by ``pad`` (m).
+
+    Returns
+    -------
+    (xmin, ymin, xmax, ymax)
+        The ``region`` of :func:`vlsforest.sim.engine.simulate`.
+    """
     xmin, ymin, xmax, ymax = plot.extent
     return (xmin - pad, ymin - pad, xmax + pad, ymax + pad)
 
