@@ -184,3 +184,38 @@ def test_memory_floor_reads_the_kb_fields_of_proc_files():
 def test_memory_floor_names_the_third_party_packages_of_a_module_list():
     names = ["numpy", "numpy.linalg", "json", "_ctypes", "vlsforest.sim", "laspy.copc", "yaml", "os.path"]
     assert _bench_memory_floor().third_party(names, stdlib={"json", "os"}) == ["laspy", "numpy", "yaml"]
+
+
+def _bench_job_startup():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_job_startup
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return bench_job_startup
+
+
+def test_job_startup_reads_the_job_stats_table():
+    bench = _bench_job_startup()
+    text = "\n".join(["Building DAG of jobs...", "Job stats:", "job          count", "---------  -------",
+                      "synth_plot         6", "simulate          84", "all                1", "total             91",
+                      "", "Job stats:", "job  count", "---  -----", "simulate 1"])
+    assert bench.job_counts(text) == {"synth_plot": 6, "simulate": 84, "all": 1}
+    assert bench.job_counts("no table") == {}
+
+
+def test_job_startup_covers_every_rule_with_a_shell_command():
+    """Every rule that runs `vlsforest <stage>` has its imports listed, with that stage."""
+    bench = _bench_job_startup()
+    checked = 0
+    for path in sorted((REPO / "workflow" / "rules").rglob("*.smk")):
+        blocks = re.split(r"^(?=rule \w+:)", path.read_text(), flags=re.M)
+        for block in blocks[1:]:
+            name = block.split(":", 1)[0].split()[1]
+            m = re.search(r'^    shell:\n\s+"vlsforest ([a-z-]+)', block, flags=re.M)
+            if not m:
+                continue
+            assert name in bench.RULE_IMPORTS, f"{path.name}: rule {name} not in RULE_IMPORTS"
+            assert bench.RULE_IMPORTS[name][0] == m.group(1), name
+            checked += 1
+    assert checked >= 20
