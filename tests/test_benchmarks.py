@@ -63,24 +63,70 @@ def test_a_benchmark_that_exits_keeps_its_code(tmp_path):
     assert json.loads((tmp_path / "bench_toy.jsonl").read_text())["exit_code"] == 4
 
 
-def test_study_benchmark_sums_the_rules_benchmark_files(tmp_path):
+def test_study_benchmark_sums_the_benchmark_files_of_the_jobs_run_by_rule(tmp_path):
     sys.path.insert(0, str(BENCHMARKS))
     try:
         import bench_study
     finally:
         sys.path.remove(str(BENCHMARKS))
+    log = "\n".join([
+        "rule simulate:",
+        "    input: results/P1/a/scene",
+        "    output: results/P1/a/als/sim.laz",
+        "    log: logs/simulate/P1_a_als.log",
+        "    jobid: 3",
+        "    benchmark: logs/benchmarks/simulate/P1_a_als.tsv",
+        "rule simulate:",
+        "    benchmark: logs/benchmarks/simulate/P2_a_als.tsv",
+        "rule synth_plot:",
+        "    benchmark: logs/benchmarks/synth/P1.tsv",
+        "rule diagnose:",
+        "    benchmark: logs/benchmarks/diagnose_uls.tsv",
+        "rule targets:",
+        "    benchmark: logs/benchmarks/targets/P1.tsv",
+        "localrule all:",
+        "    input: results/summary/tree_metrics.csv",
+        "    jobid: 0",
+    ])
+    jobs = bench_study.jobs_of_run(log)
+    assert jobs[0] == ("simulate", "logs/benchmarks/simulate/P1_a_als.tsv")
+    assert jobs[-1] == ("all", None) and len(jobs) == 6
     head = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
-    (tmp_path / "simulate").mkdir()
-    (tmp_path / "simulate" / "P1_a_als.tsv").write_text(head + "10.0\t0:00:10\t500.5\t1\t1\t1\t0\t0\t90\t9.5\n")
-    (tmp_path / "simulate" / "P2_a_als.tsv").write_text(head + "20.0\t0:00:20\t800.0\t1\t1\t1\t0\t0\t90\t19.0\n")
-    (tmp_path / "synth").mkdir()
-    (tmp_path / "synth" / "P1.tsv").write_text(head)  # a job without a row yet
-    (tmp_path / "diagnose_uls.tsv").write_text(head + "100.0\t0:01:40\t9000.0\t1\t1\t1\t0\t0\t90\t95.0\n")
-    table = bench_study.rule_table(tmp_path)
+    bench = tmp_path / "logs" / "benchmarks"
+    for folder in ("simulate", "synth", "targets"):
+        (bench / folder).mkdir(parents=True)
+    (bench / "simulate" / "P1_a_als.tsv").write_text(head + "10.0\t0:00:10\t500.5\t1\t1\t1\t0\t0\t90\t9.5\n")
+    (bench / "simulate" / "P2_a_als.tsv").write_text(head + "20.0\t0:00:20\t800.0\t1\t1\t1\t0\t0\t90\t19.0\n")
+    (bench / "simulate" / "P3_a_als.tsv").write_text(head + "50.0\t0:00:50\t900.0\t1\t1\t1\t0\t0\t90\t49.0\n")
+    (bench / "synth" / "P1.tsv").write_text(head)  # a job without a row
+    (bench / "diagnose_uls.tsv").write_text(head + "100.0\t0:01:40\t9000.0\t1\t1\t1\t0\t0\t90\t95.0\n")
+    (bench / "targets" / "P1.tsv").write_text(head + "0.4\t0:00:00\tNA\tNA\tNA\tNA\tNA\tNA\tNA\tNA\n")
+    table = bench_study.rule_table(tmp_path, jobs)
+    # P3's file is from another run: not one of this run's jobs
     assert table["simulate"] == {"jobs": 2, "cpu_s": 28.5, "wall_s": 30.0, "max_rss_mb": 800.0}
-    assert table["diagnose_uls"] == {"jobs": 1, "cpu_s": 95.0, "wall_s": 100.0, "max_rss_mb": 9000.0}
-    assert table["synth"] == {"jobs": 0, "cpu_s": 0.0, "wall_s": 0.0, "max_rss_mb": 0.0}
-    assert bench_study.rule_table(tmp_path / "none") == {}
+    assert table["diagnose"] == {"jobs": 1, "cpu_s": 95.0, "wall_s": 100.0, "max_rss_mb": 9000.0}
+    assert table["synth_plot"] == {"jobs": 1, "cpu_s": 0.0, "wall_s": 0.0, "max_rss_mb": 0.0}
+    assert table["targets"] == {"jobs": 1, "cpu_s": 0.0, "wall_s": 0.4, "max_rss_mb": 0.0}
+    assert table["all"] == {"jobs": 1}
+    assert bench_study.rule_table(tmp_path, []) == {}
+
+
+def test_every_rule_that_runs_a_command_writes_a_benchmark_file():
+    """Every rule with a shell command or a script declares a benchmark file under
+    logs/benchmarks/ (the per-rule CPU table of bench_study reads them)."""
+    files = sorted((REPO / "workflow" / "rules").rglob("*.smk"))
+    checked = 0
+    for path in files:
+        blocks = re.split(r"^(?=(?:rule|checkpoint) \w+:)", path.read_text(), flags=re.M)
+        for block in blocks[1:]:
+            name = block.split(":", 1)[0].split()[1]
+            runs = re.search(r"^    (?:shell|script|run):", block, flags=re.M)
+            if not runs:
+                continue
+            checked += 1
+            m = re.search(r'^    benchmark:\n\s+"(logs/benchmarks/[^"]+\.tsv)"', block, flags=re.M)
+            assert m, f"{path.name}: rule {name} has no benchmark file under logs/benchmarks/"
+    assert checked >= 20
 
 
 def test_compare_runs_finds_changed_and_one_sided_files(tmp_path):
@@ -138,3 +184,38 @@ def test_memory_floor_reads_the_kb_fields_of_proc_files():
 def test_memory_floor_names_the_third_party_packages_of_a_module_list():
     names = ["numpy", "numpy.linalg", "json", "_ctypes", "vlsforest.sim", "laspy.copc", "yaml", "os.path"]
     assert _bench_memory_floor().third_party(names, stdlib={"json", "os"}) == ["laspy", "numpy", "yaml"]
+
+
+def _bench_job_startup():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_job_startup
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return bench_job_startup
+
+
+def test_job_startup_reads_the_job_stats_table():
+    bench = _bench_job_startup()
+    text = "\n".join(["Building DAG of jobs...", "Job stats:", "job          count", "---------  -------",
+                      "synth_plot         6", "simulate          84", "all                1", "total             91",
+                      "", "Job stats:", "job  count", "---  -----", "simulate 1"])
+    assert bench.job_counts(text) == {"synth_plot": 6, "simulate": 84, "all": 1}
+    assert bench.job_counts("no table") == {}
+
+
+def test_job_startup_covers_every_rule_with_a_shell_command():
+    """Every rule that runs `vlsforest <stage>` has its imports listed, with that stage."""
+    bench = _bench_job_startup()
+    checked = 0
+    for path in sorted((REPO / "workflow" / "rules").rglob("*.smk")):
+        blocks = re.split(r"^(?=rule \w+:)", path.read_text(), flags=re.M)
+        for block in blocks[1:]:
+            name = block.split(":", 1)[0].split()[1]
+            m = re.search(r'^    shell:\n\s+"vlsforest ([a-z-]+)', block, flags=re.M)
+            if not m:
+                continue
+            assert name in bench.RULE_IMPORTS, f"{path.name}: rule {name} not in RULE_IMPORTS"
+            assert bench.RULE_IMPORTS[name][0] == m.group(1), name
+            checked += 1
+    assert checked >= 20

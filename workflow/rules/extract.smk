@@ -13,6 +13,8 @@ rule extract_reference:
         metrics="results/{plot}/reference/{scenario}/metrics.csv",
     log:
         "logs/extract/{plot}_reference_{scenario}.log",
+    benchmark:
+        "logs/benchmarks/extract/{plot}_reference_{scenario}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

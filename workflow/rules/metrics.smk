@@ -12,6 +12,8 @@ rule collect_metrics:
         report("results/summary/tree_metrics.csv", caption="../report/tree_metrics.rst", category="Tables"),
     log:
         "logs/summary/tree_metrics.log",
+    benchmark:
+        "logs/benchmarks/summary/tree_metrics.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

@@ -63,6 +63,8 @@ rule pad_summary:
         png=report("results/summary/pad_validation.png", caption="../report/pad_validation.rst", category="PAD"),
     log:
         "logs/summary/pad_validation.log",
+    benchmark:
+        "logs/benchmarks/summary/pad_validation.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

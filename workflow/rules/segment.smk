@@ -34,6 +34,8 @@ rule targets:
         site="results/{plot}/site.json",
     log:
         "logs/targets/{plot}.log",
+    benchmark:
+        "logs/benchmarks/targets/{plot}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:
@@ -56,6 +58,8 @@ rule crowns:
         "results/{plot}/crowns.npz",
     log:
         "logs/crowns/{plot}.log",
+    benchmark:
+        "logs/benchmarks/crowns/{plot}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

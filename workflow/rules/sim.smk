@@ -9,6 +9,8 @@ rule survey:
         "results/{plot}/surveys/{scenario}.yaml",
     log:
         "logs/survey/{plot}_{scenario}.log",
+    benchmark:
+        "logs/benchmarks/survey/{plot}_{scenario}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:
@@ -69,6 +71,8 @@ rule sim_trees:
         metrics="results/{plot}/{method}/{scenario}/metrics.csv",
     log:
         "logs/extract/{plot}_{method}_{scenario}.log",
+    benchmark:
+        "logs/benchmarks/extract/{plot}_{method}_{scenario}.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:
@@ -88,6 +92,8 @@ rule sim_times:
         report("results/summary/sim_times.csv", caption="../report/sim_times.rst", category="Tables"),
     log:
         "logs/summary/sim_times.log",
+    benchmark:
+        "logs/benchmarks/summary/sim_times.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

@@ -20,6 +20,8 @@ rule stats:
         table5=report("results/summary/stats/table5.csv", caption="../report/table5.rst", category="Tables"),
     log:
         "logs/stats/stats.log",
+    benchmark:
+        "logs/benchmarks/stats/stats.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:
@@ -51,6 +53,8 @@ rule figures:
                category="Figures"),
     log:
         "logs/stats/figures.log",
+    benchmark:
+        "logs/benchmarks/stats/figures.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

@@ -39,6 +39,8 @@ rule forest_truth:
         physics="results/forest/truth/recording_physics.yaml",
     log:
         "logs/synth/forest_truth.log",
+    benchmark:
+        "logs/benchmarks/synth/forest_truth.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     params:

@@ -41,6 +41,8 @@ rule voxel_counts:
         report("results/summary/voxel_counts.csv", caption="../report/voxel_counts.rst", category="Tables"),
     log:
         "logs/summary/voxel_counts.log",
+    benchmark:
+        "logs/benchmarks/summary/voxel_counts.tsv"
     conda:
         "../../envs/vlsforest.yaml"
     resources:

@@ -19,6 +19,8 @@ rule voxels_linear_pad:
         "results/{plot}/{method}/voxels.npz",
     log:
         "logs/voxels/{plot}_{method}.log",
+    benchmark:
+        "logs/benchmarks/voxels/{plot}_{method}.tsv"
     wildcard_constraints:
         method=methods_of_kind("linear_pad"),
     conda:
