@@ -16,10 +16,16 @@ Detector options (the SURVEY.yaml ``detector:`` mapping)::
       dedupe_ranges: false    # drop bit-identical sub-ray ranges (quirk 5)
       atmosphere_convention: physical   # physical | helios  (quirk 12)
       return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
+      threshold_scope: window # window (HELIOS++ 2.x) | peak: where min_energy applies (helios rule)
 
 ``mode: helios_v1`` sets ``peak_rule: helios, dedupe_ranges: true, atmosphere_convention:
 helios``; ``mode: physical`` (default) sets ``peak_rule: physical, dedupe_ranges: false,
-atmosphere_convention: physical``. The sub-ray rings sit where HELIOS++ puts them in both
+atmosphere_convention: physical``; both set ``threshold_scope: window``. Under the helios
+rule ``threshold_scope`` says whether ``min_energy`` is the floor of the peak and of every
+neighbour in its window (``window``: HELIOS++ 2.x's ``receivedEnergyMin_W``) or the threshold
+of the peak amplitude alone, the neighbours keeping HELIOS++ 1.0.8's fixed floor (``peak``: a
+receiver's threshold, the meaning ``min_energy`` has under the physical rule; see
+:mod:`vlsforest.sim.waveform`). The sub-ray rings sit where HELIOS++ puts them in both
 modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² half angle, see
 :mod:`vlsforest.sim.scanner`), so a real sensor's beam is given there, not by a detector switch.
 """
@@ -43,14 +49,15 @@ from vlsforest.sim.workers import WorkerDied, fork_map
 
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
-                     atmosphere_convention="physical", return_position="axis"),
+                     atmosphere_convention="physical", return_position="axis", threshold_scope="window"),
     "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=True,
-                      atmosphere_convention="helios", return_position="axis"),
+                      atmosphere_convention="helios", return_position="axis", threshold_scope="window"),
 }
 _CHOICES = {
     "peak_rule": ("physical", "helios"),
     "atmosphere_convention": ("physical", "helios"),
     "return_position": ("axis", "weighted"),
+    "threshold_scope": ("window", "peak"),
 }
 
 
@@ -63,6 +70,7 @@ class DetectorOptions:
     dedupe_ranges: bool = False
     atmosphere_convention: str = "physical"
     return_position: str = "axis"
+    threshold_scope: str = "window"
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "DetectorOptions":
@@ -167,7 +175,8 @@ class _Job:
             pulse_length_ns=sc.emitter.pulse_length_ns, bin_size_ns=sc.detector.bin_size_ns,
             window_size_ns=sc.detector.window_size_ns, min_energy=sc.detector.min_energy,
             max_returns=sc.detector.max_returns, peak_rule=self.opts.peak_rule,
-            two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges)
+            two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges,
+            threshold_scope=self.opts.threshold_scope)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
             if region is not None:
@@ -389,7 +398,7 @@ def _detect(job: _Job, batch, ptr, hits):
                          bin_size_ns=sc.detector.bin_size_ns, window_size_ns=sc.detector.window_size_ns,
                          min_energy=sc.detector.min_energy, max_returns=sc.detector.max_returns,
                          peak_rule=o.peak_rule, two_way_time=o.two_way_time,
-                         dedupe_ranges=o.dedupe_ranges)
+                         dedupe_ranges=o.dedupe_ranges, threshold_scope=o.threshold_scope)
     label = hits["label"][det["hit"]] if "label" in hits else None
     weighted = None
     if o.return_position != "axis":
