@@ -1368,6 +1368,47 @@ def test_peak_rule_candidate_switches_the_detector_rule():
     assert n["physical"] > n["helios"]
 
 
+def test_peak_rule_at_a_fitted_threshold_adds_isolated_echoes_and_keeps_the_threshold():
+    """The stored hits of a roof 3 m above the ground, re-rendered as the diagnosis does, at a
+    detection threshold of 30 % of a full-footprint echo's peak. A receiver's threshold reports
+    every peak above it and no other, under either rule: the returns of the helios rule at the
+    threshold are its returns without a threshold whose amplitude reaches it (a threshold that
+    every bin of the window had to reach would drop them all: a lone echo's first bin holds
+    23 % of its peak), and likewise for the physical rule. Switching the rule adds the later of
+    two echo groups 40 bins apart, which HELIOS++ 1.0.8's rule drops: pulses across the roof's
+    edge get two returns, and the weakest return stays above the threshold."""
+    from vlsforest.sim import Scene, redetect, survey_from_dict, trace_hits
+
+    study = {"scanner": "riegl_vq780i", "detector": {"mode": "helios_v1"},
+             "overrides": {"prf_hz": 20000, "scan_freq_hz": 20, "scan_angle_deg": 2.0, "max_scan_angle_deg": 2.0,
+                           "range_min_m": 0.0, "range_noise_m": 0.0},
+             "platform": {"speed_mps": 5.0, "legs": [{"start": [0, -1, 100], "end": [0, 1, 100]}]}}
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-50, -50, 50, 50])
+    sc.add_plane(2, 3.0, [0.0, -50, 50, 50])
+    pulses, hits = trace_hits(sc, survey_from_dict(study), workers=1)
+    parts = sc.part_table()
+
+    def render(assign):
+        s, _ = lib.apply_all(study, assign)
+        return redetect(parts, pulses, hits, survey_from_dict(s)).points
+
+    free = {"helios": render({}), "physical": render({"peak_rule": {"physical": 1.0}})}
+    full = float(np.median(free["helios"]["amplitude"]))
+    thr = 0.3 * full
+    base = {"detection_threshold": {"min_energy": thr}}
+    at = {"helios": render(base), "physical": render(lib.merge(base, "peak_rule", {"physical": 1.0}))}
+    for rule in ("helios", "physical"):
+        keep = free[rule]["amplitude"] >= thr
+        assert len(at[rule]["amplitude"]) == keep.sum() > 0
+        assert np.array_equal(at[rule]["xyz"], free[rule]["xyz"][keep])
+        assert at[rule]["amplitude"].min() >= thr
+    multi = {k: float(np.mean(v["number_of_returns"] > 1)) for k, v in at.items()}
+    assert multi["helios"] == 0.0 < multi["physical"]
+    two = at["physical"]["number_of_returns"] == 2
+    assert set(np.round(at["physical"]["xyz"][two, 2])) == {0.0, 3.0}  # one echo from each surface
+
+
 def test_equivalent_circular_divergence_is_the_geometric_mean_of_the_fwhm_axes():
     survey = {"scanner": "riegl_minivux1uav", "overrides": {"window_size_ns": 1.5}}
     k = float(np.sqrt(2.0 / np.log(2.0)))  # FWHM → 1/e² full width of a Gaussian beam

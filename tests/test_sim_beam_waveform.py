@@ -92,6 +92,32 @@ def test_helios_rule_reference_vectors():
         assert _two(500.0, 500.0 + sep, window_size_ns=1.5, peak_rule="helios")["n_returns"][0] == n
 
 
+def test_threshold_scope_under_the_helios_rule():
+    """A lone echo whose peak is twice the threshold: a receiver's threshold on the peak
+    (``threshold_scope="peak"``, and the physical rule) reports it; a threshold that every
+    bin of the helios rule's window must reach drops it, because the echo's first bin after
+    the pulse's start holds only 23 % of its peak (4 ns pulse, 0.25 ns bins)."""
+    shape = pulse_shape(4.0, 0.25)
+    assert shape[1] / shape.max() == pytest.approx(0.23, abs=0.01)
+    energy = 1000.0
+    peak = energy * shape.max()
+    ptr, ranges, e = np.array([0, 1]), np.array([100.0]), np.array([energy])
+
+    def amps(**kw):
+        return detect_returns(ptr, ranges, e, window_size_ns=1.5, **kw)["amplitude"]
+
+    assert amps(peak_rule="helios", min_energy=0.5 * peak).size == 0
+    assert amps(peak_rule="helios", min_energy=0.5 * peak, threshold_scope="window").size == 0
+    for kw in ({"peak_rule": "helios", "threshold_scope": "peak"}, {"peak_rule": "physical"},
+               {"peak_rule": "physical", "threshold_scope": "peak"}):
+        assert amps(min_energy=0.5 * peak, **kw) == pytest.approx([peak])
+        assert amps(min_energy=1.01 * peak, **kw).size == 0
+    # the peak scope keeps HELIOS++ 1.0.8's neighbour floor: without a threshold both scopes agree
+    assert amps(peak_rule="helios", threshold_scope="peak") == pytest.approx(amps(peak_rule="helios"))
+    with pytest.raises(ConfigError):
+        amps(threshold_scope="bins")
+
+
 def test_physical_rule_resolves_isolated_echoes():
     dead = C_M_PER_NS * 1.5  # 0.45 m
     assert _two(500.0, 503.0, window_size_ns=1.5)["n_returns"][0] == 2

@@ -194,7 +194,8 @@ def test_real_uls_beam_is_elliptical_and_als_circular():
     assert uls.scanner.beam.sample_quality >= 4 and als.scanner.beam.sample_quality >= 4  # ≥ 37 sub-rays
     # the datasheets' ranging accuracy, the recordings' physical detector
     assert (als.scanner.detector.range_noise_m, uls.scanner.detector.range_noise_m) == (0.02, 0.015)
-    assert uls.scanner.detector.min_energy > 0 and als.detector == uls.detector == {"mode": "physical"}
+    assert uls.scanner.detector.min_energy > 0
+    assert als.detector == uls.detector == {"mode": "physical", "threshold_scope": "peak"}
 
 
 def test_uls_recording_flies_p2s_second_grid_at_4_mps():

@@ -31,6 +31,16 @@ overlap earlier energy is dropped for windows of 6 bins or more (the study's 1.5
 a physical detector reports it. Its parameter is 0 for the HELIOS++ rule and 1 for the physical
 one (``detector.peak_rule`` of the survey).
 
+``detection_threshold`` is a receiver's threshold on the peak amplitude (the recordings'
+meaning): it sets ``detector.threshold_scope: peak``, so that under the helios rule the
+neighbours of a peak keep HELIOS++ 1.0.8's fixed floor instead of having to reach the
+threshold too (HELIOS++ 2.x's ``receivedEnergyMin_W``, which lets only echoes several times
+the threshold through). The two candidates are then separable: switching the peak rule at a
+fitted threshold adds the isolated echoes and leaves the weakest echo reported — the
+``int_floor`` observable — where the threshold put it; with the threshold covering the window
+the switch would also lower that floor by the window's factor, and the floor (the observable
+measured most precisely across trees) would swamp the switch's signature.
+
 ``tls_occlusion`` is the one model-input candidate: the TLS sees the upper crown through the
 lower one, so PAD is under-estimated there (Weiser et al. 2021, §4) and PAD-scaled cubes come out
 too small. The correction multiplies each crown cube's PAD by ``1 + top_gain · ramp``, where
@@ -239,6 +249,7 @@ class Candidate:
             ov["beam_orientation_deg"] = 0.0
         elif self.name == "detection_threshold":
             ov["min_energy"] = float(values["min_energy"])
+            s["detector"] = dict(s.get("detector") or {}, threshold_scope="peak")
         elif self.name == "reflectance":
             edits["reflectance_scale"] = float(values["scale"])
         elif self.name == "incidence_reflectance":

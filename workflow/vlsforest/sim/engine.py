@@ -18,16 +18,22 @@ Detector options (the SURVEY.yaml ``detector:`` mapping)::
       return_position: axis   # axis (HELIOS++) | weighted (energy-weighted sub-ray hits)
       box_test: cone          # cone | axis: a pulse is traced when its beam cone (cone) or
                               # its central ray (axis, HELIOS++) meets the scene's bounding box
+      threshold_scope: window # window (HELIOS++ 2.x) | peak: where min_energy applies (helios rule)
 
 ``mode: helios_v1`` sets ``peak_rule: helios, atmosphere_convention: helios, box_test: axis``;
 ``mode: physical`` (default) sets ``peak_rule: physical, atmosphere_convention: physical,
-box_test: cone``. HELIOS++ skips a pulse whose central ray misses the scene's bounding box,
-although its outer sub-rays may hit the scene's edge (quirk 13). Neither mode drops
-duplicate ranges: HELIOS++ keys a pulse's sub-ray hits by their double-precision range, so two
-keys are equal only for an exact geometric tie, while ranges from Embree are single precision,
-whose rounding makes sub-rays that hit one face at ranges a few 10⁻⁵ m apart equal. Dropping
-those removes energy HELIOS++ keeps and raises the multiple-return share above HELIOS++'s
-(``benchmarks/bench_helios.py``, its ``agreement`` block). The sub-ray rings sit where HELIOS++ puts them in both
+box_test: cone``; both set ``threshold_scope: window``. HELIOS++ skips a pulse whose central ray
+misses the scene's bounding box, although its outer sub-rays may hit the scene's edge (quirk
+13). Neither mode drops duplicate ranges: HELIOS++ keys a pulse's sub-ray hits by their
+double-precision range, so two keys are equal only for an exact geometric tie, while ranges
+from Embree are single precision, whose rounding makes sub-rays that hit one face at ranges a
+few 10⁻⁵ m apart equal. Dropping those removes energy HELIOS++ keeps and raises the
+multiple-return share above HELIOS++'s (``benchmarks/bench_helios.py``, its ``agreement``
+block). Under the helios rule ``threshold_scope`` says whether ``min_energy`` is the floor of
+the peak and of every neighbour in its window (``window``: HELIOS++ 2.x's
+``receivedEnergyMin_W``) or the threshold of the peak amplitude alone, the neighbours keeping
+HELIOS++ 1.0.8's fixed floor (``peak``: a receiver's threshold, the meaning ``min_energy`` has
+under the physical rule; see :mod:`vlsforest.sim.waveform`). The sub-ray rings sit where HELIOS++ puts them in both
 modes; the beam's width is the scanner's ``beam_divergence_mrad`` (the 1/e² half angle, see
 :mod:`vlsforest.sim.scanner`), so a real sensor's beam is given there, not by a detector switch.
 """
@@ -51,15 +57,18 @@ from vlsforest.sim.workers import WorkerDied, fork_map
 
 _MODES = {
     "physical": dict(peak_rule="physical", two_way_time=False, dedupe_ranges=False,
-                     atmosphere_convention="physical", return_position="axis", box_test="cone"),
+                     atmosphere_convention="physical", return_position="axis", box_test="cone",
+                     threshold_scope="window"),
     "helios_v1": dict(peak_rule="helios", two_way_time=False, dedupe_ranges=False,
-                      atmosphere_convention="helios", return_position="axis", box_test="axis"),
+                      atmosphere_convention="helios", return_position="axis", box_test="axis",
+                      threshold_scope="window"),
 }
 _CHOICES = {
     "peak_rule": ("physical", "helios"),
     "atmosphere_convention": ("physical", "helios"),
     "return_position": ("axis", "weighted"),
     "box_test": ("cone", "axis"),
+    "threshold_scope": ("window", "peak"),
 }
 
 
@@ -73,6 +82,7 @@ class DetectorOptions:
     atmosphere_convention: str = "physical"
     return_position: str = "axis"
     box_test: str = "cone"
+    threshold_scope: str = "window"
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "DetectorOptions":
@@ -177,7 +187,8 @@ class _Job:
             pulse_length_ns=sc.emitter.pulse_length_ns, bin_size_ns=sc.detector.bin_size_ns,
             window_size_ns=sc.detector.window_size_ns, min_energy=sc.detector.min_energy,
             max_returns=sc.detector.max_returns, peak_rule=self.opts.peak_rule,
-            two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges)
+            two_way_time=self.opts.two_way_time, dedupe_ranges=self.opts.dedupe_ranges,
+            threshold_scope=self.opts.threshold_scope)
         if hasattr(scene, "bounds"):
             self.box_lo, self.box_hi = scene.bounds()
             if region is not None:
@@ -400,7 +411,7 @@ def _detect(job: _Job, batch, ptr, hits):
                          bin_size_ns=sc.detector.bin_size_ns, window_size_ns=sc.detector.window_size_ns,
                          min_energy=sc.detector.min_energy, max_returns=sc.detector.max_returns,
                          peak_rule=o.peak_rule, two_way_time=o.two_way_time,
-                         dedupe_ranges=o.dedupe_ranges)
+                         dedupe_ranges=o.dedupe_ranges, threshold_scope=o.threshold_scope)
     label = hits["label"][det["hit"]] if "label" in hits else None
     weighted = None
     if o.return_position != "axis":

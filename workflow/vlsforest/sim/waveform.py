@@ -21,10 +21,16 @@ Peak detection: a bin is a return when its value is at least ``min_energy`` (and
 is the strict maximum of its neighbourhood. ``peak_rule="physical"`` (default) compares with
 every bin within ±win (win = window/bin), left neighbours strictly lower, right neighbours lower
 or equal (a plateau yields its first bin). ``peak_rule="helios"`` reproduces HELIOS++ v1.0:
-neighbours within ±(win−1), bin 0 never checked, and *every neighbour must itself be ≥ the
-threshold* (hard-coded 0.001 in v1.0) — which suppresses an echo that does not overlap
-earlier energy when win ≥ 6 (quirk 3). At most ``max_returns`` earliest peaks are kept (0 =
-all). The return range is the range of the peak bin minus the pulse's peak offset, so a lone
+neighbours within ±(win−1), bin 0 never checked, and *every neighbour must itself be ≥ a
+floor* (hard-coded 0.001 in v1.0) — which suppresses an echo that does not overlap earlier
+energy when win ≥ 6 (quirk 3). Under the helios rule ``threshold_scope`` says where
+``min_energy`` applies: ``"window"`` (default) to the peak and every neighbour, as HELIOS++
+2.x's ``receivedEnergyMin_W`` replaces that floor, so that the weakest lone echo reported has a
+peak several times ``min_energy`` (≈ 4.4× for the 4 ns pulse on 0.25 ns bins and a 6-bin
+window, whose first bin after the pulse's start holds 23 % of its peak); ``"peak"`` to the
+peak alone, the neighbours keeping the 0.001 floor, so that ``min_energy`` is the receiver's
+threshold on the peak amplitude as under the physical rule. At most ``max_returns`` earliest
+peaks are kept (0 = all). The return range is the range of the peak bin minus the pulse's peak offset, so a lone
 flat target at range d gives exactly d (quantised down onto the bin lattice anchored at the
 nearest hit, quirk 7).
 """
@@ -34,11 +40,18 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vlsforest.errors import ConfigError
+
 C_M_PER_NS = 0.299792458
 
 #: the amplitude that maps to the largest LAS intensity (HELIOS++'s LAS writer: intensities are
 #: scaled by 65,535 / 10⁶ and clipped to [0, 10⁶])
 INTENSITY_FULL_SCALE = 1.0e6
+
+#: HELIOS++ 1.0.8's fixed detection floor (``eps`` of its full-waveform detector): the helios
+#: rule's threshold without ``min_energy`` and its neighbours' floor unless ``min_energy`` covers
+#: the window
+HELIOS_FLOOR = 0.001
 
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -253,9 +266,12 @@ def _energy_kernel(r, w, cos_inc, refl, spec, shin, scale, alpha, out):
 
 
 @numba.njit(cache=True, inline="always")
-def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, max_returns,
+def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, eps_nb, max_returns,
                 helios_rule, dedupe, wave, out_range, out_amp, out_sub, unimodal):
     """Detect the returns of one pulse; returns the number written to the out arrays.
+
+    ``eps`` is the peak's threshold, ``eps_nb`` the floor every neighbour of a peak must reach
+    under the helios rule (:func:`detection_constants`).
 
     The hits' energies are summed per waveform bin in the order given (sorted by range only
     when duplicate ranges are dropped; ``order_buf`` is scratch space for that order).
@@ -327,7 +343,7 @@ def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, m
             if lo < 1:
                 lo = 1
             for j in range(lo, i):
-                if wave[j] < eps or wave[j] >= v:
+                if wave[j] < eps_nb or wave[j] >= v:
                     ok = False
                     break
             if ok:
@@ -335,7 +351,7 @@ def _detect_one(ranges, energy, order_buf, shape, peak_index, bin_m, win, eps, m
                 if hi > nbins:
                     hi = nbins
                 for j in range(i + 1, hi):
-                    if wave[j] < eps or wave[j] >= v:
+                    if wave[j] < eps_nb or wave[j] >= v:
                         ok = False
                         break
         else:
@@ -421,7 +437,7 @@ def _stable_order(x, buf):
 
 
 @numba.njit(cache=True)
-def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_returns,
+def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, eps_nb, max_returns,
                 helios_rule, dedupe, max_per_pulse):
     unimodal = _is_unimodal(shape, peak_index)
     m = ptr.shape[0] - 1
@@ -451,7 +467,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
         if b == a:
             continue
         rr = ranges[a:b]
-        f = _detect_one(rr, energy[a:b], order_buf, shape, peak_index, bin_m, win, eps, max_returns,
+        f = _detect_one(rr, energy[a:b], order_buf, shape, peak_index, bin_m, win, eps, eps_nb, max_returns,
                         helios_rule, dedupe, wave, o_range, o_amp, o_sub, unimodal)
         nret[p] = f
         for q in range(f):
@@ -467,7 +483,7 @@ def _detect_all(ptr, ranges, energy, shape, peak_index, bin_m, win, eps, max_ret
 
 def detect_returns(ptr, ranges, energy, *, pulse_length_ns=4.0, bin_size_ns=0.25, window_size_ns=1.0,
                    min_energy=0.0, max_returns=0, peak_rule="physical", two_way_time=False,
-                   dedupe_ranges=False):
+                   dedupe_ranges=False, threshold_scope="window"):
     """Full-waveform peak detection for many pulses.
 
     Parameters
@@ -488,6 +504,9 @@ def detect_returns(ptr, ranges, energy, *, pulse_length_ns=4.0, bin_size_ns=0.25
         Use a two-way time axis instead of HELIOS++'s one-way axis.
     dedupe_ranges : bool
         Ignore a second sub-ray hit at a bit-identical range (HELIOS++ quirk 5).
+    threshold_scope : {"window", "peak"}
+        Under the helios rule, whether ``min_energy`` applies to the peak and every neighbour
+        in its window or to the peak alone (module docstring).
 
     Returns
     -------
@@ -498,7 +517,8 @@ def detect_returns(ptr, ranges, energy, *, pulse_length_ns=4.0, bin_size_ns=0.25
     """
     const = detection_constants(pulse_length_ns=pulse_length_ns, bin_size_ns=bin_size_ns,
                                 window_size_ns=window_size_ns, min_energy=min_energy, max_returns=max_returns,
-                                peak_rule=peak_rule, two_way_time=two_way_time, dedupe_ranges=dedupe_ranges)
+                                peak_rule=peak_rule, two_way_time=two_way_time, dedupe_ranges=dedupe_ranges,
+                                threshold_scope=threshold_scope)
     ptr = np.asarray(ptr, dtype=np.int64)
     res = _detect_all(ptr, np.asarray(ranges, np.float64), np.asarray(energy, np.float64), *const)
     keys = ("pulse", "range", "amplitude", "hit", "return_number", "number_of_returns", "n_returns")
@@ -506,7 +526,8 @@ def detect_returns(ptr, ranges, energy, *, pulse_length_ns=4.0, bin_size_ns=0.25
 
 
 def detection_constants(*, pulse_length_ns=4.0, bin_size_ns=0.25, window_size_ns=1.0, min_energy=0.0,
-                        max_returns=0, peak_rule="physical", two_way_time=False, dedupe_ranges=False) -> tuple:
+                        max_returns=0, peak_rule="physical", two_way_time=False, dedupe_ranges=False,
+                        threshold_scope="window") -> tuple:
     """The detection settings as the positional constants of the peak-detection kernels.
 
     Parameters are those of :func:`detect_returns`.
@@ -514,18 +535,24 @@ def detection_constants(*, pulse_length_ns=4.0, bin_size_ns=0.25, window_size_ns
     Returns
     -------
     tuple
-        ``(shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe, max_per_pulse)``:
-        the sampled pulse shape, the index of its maximum, the bin length in metres, the
-        window in bins, the amplitude threshold, the return cap (0: none), the peak rule and
+        ``(shape, peak_index, bin_m, win, eps, eps_nb, max_returns, helios_rule, dedupe,
+        max_per_pulse)``: the sampled pulse shape, the index of its maximum, the bin length in
+        metres, the window in bins, the peak's amplitude threshold, the floor of a peak's
+        neighbours under the helios rule, the return cap (0: none), the peak rule and
         duplicate-range switches, and the most returns one pulse can yield.
     """
+    if threshold_scope not in ("window", "peak"):
+        raise ConfigError(f"threshold_scope must be 'window' or 'peak', got {threshold_scope!r}")
     shape = pulse_shape(pulse_length_ns, bin_size_ns)
     peak_index = int(np.argmax(shape))
     bin_m = C_M_PER_NS * bin_size_ns / (2.0 if two_way_time else 1.0)
     win = int(np.floor(window_size_ns / bin_size_ns + 1e-9))
-    eps = 0.001 if (peak_rule == "helios" and min_energy <= 0) else float(min_energy)
+    helios = peak_rule == "helios"
+    eps = HELIOS_FLOOR if (helios and min_energy <= 0) else float(min_energy)
+    # the helios rule's neighbour floor: HELIOS++ 1.0.8's, or the threshold where it covers the window
+    eps_nb = eps if (helios and threshold_scope == "window") else HELIOS_FLOOR
     max_per = int(max_returns) if max_returns and max_returns > 0 else 32
-    return (shape, peak_index, float(bin_m), win, eps, int(max_returns), peak_rule == "helios", bool(dedupe_ranges),
+    return (shape, peak_index, float(bin_m), win, eps, eps_nb, int(max_returns), peak_rule == "helios", bool(dedupe_ranges),
             max_per)
 
 
@@ -617,7 +644,7 @@ def hit_cos32(ng, d, i):
 
 @numba.njit(cache=True)
 def _detect_traced(raw, t, part, cos_inc, tfar, geom, ng, d32, parts, live, ns, m, range_min, frac, refl, spec,
-                   shin, scale, r0, m2, alpha, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
+                   shin, scale, r0, m2, alpha, shape, peak_index, bin_m, win, eps, eps_nb, max_returns, helios_rule, dedupe,
                    max_per_pulse):
     unimodal = _is_unimodal(shape, peak_index)
     wa, wea = _weight_consts(frac, m2)
@@ -673,8 +700,8 @@ def _detect_traced(raw, t, part, cos_inc, tfar, geom, ng, d32, parts, live, ns, 
         if need > wave.shape[0]:
             wave = np.empty(2 * need, np.float64)
         r = rr[:n]
-        f = _detect_one(r, en[:n], order_buf, shape, peak_index, bin_m, win, eps, max_returns, helios_rule, dedupe,
-                        wave, o_range, o_amp, o_sub, unimodal)
+        f = _detect_one(r, en[:n], order_buf, shape, peak_index, bin_m, win, eps, eps_nb, max_returns, helios_rule,
+                        dedupe, wave, o_range, o_amp, o_sub, unimodal)
         if f == 0:
             continue
         p = live[j]

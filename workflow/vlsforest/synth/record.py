@@ -4,9 +4,9 @@ What a field campaign would deliver, made by scanning the leaf-level truth geome
 own simulator. The recordings record the sensors as they are: the datasheet beams
 (:data:`~vlsforest.sim.scanner.REAL_BEAMS`: the VQ-780i's 0.25 mrad and the miniVUX's elliptical
 1.6 × 0.5 mrad at 50 % peak intensity), the presets' datasheet ranging accuracy and a physical
-detector (``detector: {mode: physical}``), plus the recording physics
+detector (``detector: {mode: physical, threshold_scope: peak}``), plus the recording physics
 (:data:`DEFAULT_RECORDING_PHYSICS`, replaceable with ``--recording-physics FILE``): 37 sub-rays,
-an energy threshold, at most 5–7 returns and small trajectory noise. Its keys are the
+an energy threshold on the peak amplitude, at most 5–7 returns and small trajectory noise. Its keys are the
 physics-candidate ids of the diagnosis stage, per sensor::
 
     als:
@@ -413,8 +413,13 @@ def tls_survey(pos: dict, cfg: dict, physics: dict, seed: int) -> dict:
 
 
 def _detector(physics: dict) -> dict:
-    """The recordings' detector: physical, or HELIOS++ 1.0.8's peak rule where the physics asks."""
-    det = {"mode": "physical"}
+    """The recordings' detector: physical, or HELIOS++ 1.0.8's peak rule where the physics asks.
+
+    Its ``detection_threshold`` is a receiver's threshold on the peak amplitude under either
+    rule (``threshold_scope: peak``, :mod:`vlsforest.sim.engine`), as the diagnosis' candidate
+    of that name models it.
+    """
+    det = {"mode": "physical", "threshold_scope": "peak"}
     if "peak_rule" in physics and not round(float(physics["peak_rule"].get("physical", 1))):
         det["peak_rule"] = "helios"
     return det
