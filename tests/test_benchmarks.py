@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import json
 import re
@@ -152,13 +153,17 @@ def test_compare_runs_finds_changed_and_one_sided_files(tmp_path):
     assert len(out.read_text().splitlines()) == 2
     assert cr.main([str(tmp_path / "nope"), str(tmp_path / "b"), "--out", str(out)]) == 2
 
-def _bench_memory_floor():
+def _bench(name: str):
+    """The benchmark module ``benchmarks/<name>.py``, imported with its folder on the path."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        import bench_memory_floor
+        return importlib.import_module(name)
     finally:
         sys.path.remove(str(BENCHMARKS))
-    return bench_memory_floor
+
+
+def _bench_memory_floor():
+    return _bench("bench_memory_floor")
 
 
 def test_memory_floor_fits_bytes_per_element_by_least_squares():
@@ -187,12 +192,7 @@ def test_memory_floor_names_the_third_party_packages_of_a_module_list():
 
 
 def _bench_job_startup():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import bench_job_startup
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return bench_job_startup
+    return _bench("bench_job_startup")
 
 
 def test_job_startup_reads_the_job_stats_table():
