@@ -160,3 +160,155 @@ def test_cog_offsets_vertical_and_radial():
     # a cell centred on the axis has no radial direction
     assert tls_step.cog_offsets(xyz, (0.125, 0.125))[0, 1] == 0.0
     assert tls_step.cog_offsets(np.zeros((0, 3)), (0, 0)).shape == (0, 2)
+
+
+# --------------------------------------------------------------------------- analyses of a run's files
+
+
+def _grid(x0, x1, y0, y1, zs, step=0.25):
+    """Points on a regular xy grid over [x0, x1] × [y0, y1] at each height of ``zs``."""
+    xs = np.arange(x0, x1 + 1e-9, step)
+    ys = np.arange(y0, y1 + 1e-9, step)
+    return np.array([[x, y, z] for z in zs for x in xs for y in ys])
+
+
+def _write_run(tmp_path, ref_xyz, sim_xyz, cubes_ijk, cell=0.5, sides=None, ground_z=100.0):
+    """A one-plot, one-tree run: targets, a reference and a simulated tree cloud, a voxel model."""
+    from vlsforest.io.las import PointCloud, write_las
+    from vlsforest.io.voxel_model import VoxelModel
+
+    d = tmp_path / "P1"
+    d.mkdir()
+    (d / "targets.csv").write_text(f"target_id,tree_id,species,group,x,y,z\n7,3,picea_abies,conifer,0,0,{ground_z}\n")
+    for name, xyz in (("ref", ref_xyz), ("sim", sim_xyz)):
+        xyz = np.asarray(xyz, float) + [0, 0, ground_z]
+        write_las(d / f"{name}.laz", PointCloud(xyz, {"tree_id": np.full(len(xyz), 7, np.int64)}))
+    half = None if sides is None else np.asarray(sides, float) / 2
+    VoxelModel(cell, np.asarray(cubes_ijk) + [0, 0, int(round(ground_z / cell))], np.full(len(cubes_ijk), 3),
+               half=half).save(d / "vox.npz")
+    return {"P1": {"targets": str(d / "targets.csv"), "reference": {"als": str(d / "ref.laz")},
+                   "methods": {"m": {"voxels": str(d / "vox.npz"), "trees": {"als": str(d / "sim.laz")}}}}}
+
+
+def test_crown_projection_area_is_tree_metrics_cpa_at_a_given_base():
+    from vlsforest.metrics import crown_projection_area, tree_metrics
+
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(size=(400, 3)) * [2.0, 2.0, 3.0] + [500.0, 300.0, 12.0]
+    m = tree_metrics(xyz, ground_z=2.0)
+    assert crown_projection_area(xyz, m["cbh"], ground_z=2.0) == m["cpa"]
+    # a 2 × 2 m square at 5 m and a 1 × 1 m square at 9 m: a base above 5 m keeps the small one only
+    sq = np.array([[x, y, z] for z, h in ((5.0, 1.0), (9.0, 0.5)) for x in (-h, h) for y in (-h, h)])
+    assert crown_projection_area(sq, 4.0) == pytest.approx(4.0)
+    assert crown_projection_area(sq, 6.0) == pytest.approx(1.0)
+    assert crown_projection_area(np.zeros((0, 3)), 1.0) == 0.0
+
+
+def test_model_outline_area_is_the_hull_of_the_cube_corners_above_the_base():
+    from vlsforest.experiments.crown_outline import model_outline_area
+    from vlsforest.io.voxel_model import VoxelModel
+
+    # full 0.5 m cells (0,0,4) and (2,0,4): corners span x 0..1.5, y 0..0.5 → 0.75 m²; a cell
+    # (0,3,0) whose top (0.5 m) lies below a 1 m base is left out
+    model = VoxelModel(0.5, [[0, 0, 4], [2, 0, 4], [0, 3, 0]], [1, 1, 1])
+    assert model_outline_area(model, 1.0, 0.0) == pytest.approx(0.75)
+    # all three: hull (0,0) (1.5,0) (1.5,0.5) (0.5,2) (0,2); shoelace ½·(0.75 + 2.75 + 1) = 2.25 m²
+    assert model_outline_area(model, 0.0, 0.0) == pytest.approx(2.25)
+    # cubes of 0.2 m centred in their cells: x 0.15..1.35, y 0.15..0.35 → 1.2 × 0.2
+    small = VoxelModel(0.5, [[0, 0, 4], [2, 0, 4]], [1, 1], half=np.array([0.1, 0.1]))
+    assert model_outline_area(small, 1.0, 0.0) == pytest.approx(0.24)
+    assert model_outline_area(VoxelModel(0.5, np.zeros((0, 3)), []), 1.0, 0.0) == 0.0
+
+
+def test_crown_outline_splits_the_cpa_error(tmp_path):
+    from scipy.spatial import ConvexHull
+
+    from vlsforest.experiments.crown_outline import run_crown_outline
+
+    zs = np.arange(3.0, 8.01, 0.5)
+    ref = _grid(-1.0, 1.0, -1.0, 1.0, zs)               # a 2 × 2 m crown from 3 m
+    # the simulation: a 3 × 3 m crown from 5 m and a thin branch at 3–4 m beside it (too narrow to
+    # start the crown there, so its own base is at 5 m and the branch is left out of its CPA)
+    branch = _grid(2.0, 2.5, -0.5, 0.0, [3.0, 3.5, 4.0])
+    sim = np.vstack([_grid(-1.5, 1.5, -1.5, 1.5, np.arange(5.0, 8.01, 0.5)), branch])
+    # the model: 0.5 m cells over x, y −1.5..1.5 at 2.5–8.5 m: its outline is 3 × 3 m
+    cubes = [[i, j, k] for i in range(-3, 3) for j in range(-3, 3) for k in range(5, 17)]
+    man = _write_run(tmp_path, ref, sim, cubes)
+    res = run_crown_outline(man, ["m"], ["als"])
+    (row,) = res["trees"]
+    assert row["cpa_ref"] == pytest.approx(4.0) and row["cpa_model"] == pytest.approx(9.0)
+    seen = ConvexHull(sim[:, :2]).volume  # at the reference's base (≈ 3 m) the branch is in
+    assert row["cpa_seen"] == pytest.approx(seen) and seen > 9.0
+    assert row["cpa_sim"] == pytest.approx(9.0)
+    assert row["cbh_sim"] > 4.0 > 3.0 >= row["cbh_ref"] - 0.1
+    s = res["summary"]["m"]["als"]
+    assert s["outline"]["mean"] == pytest.approx(5.0)
+    assert s["unseen"]["mean"] == pytest.approx(seen - 9.0)
+    assert s["base"]["mean"] == pytest.approx(9.0 - seen)
+    assert s["error"]["mean"] == pytest.approx(5.0)
+    assert s["outline"]["mean"] + s["unseen"]["mean"] + s["base"]["mean"] == pytest.approx(s["error"]["mean"])
+
+
+def test_line_fit_matches_scipy():
+    from scipy.stats import linregress
+
+    from vlsforest.experiments.shift_room import line_fit
+
+    rng = np.random.default_rng(2)
+    x = rng.uniform(0.08, 0.16, 20)
+    y = 10 - 60 * x + rng.normal(0, 0.5, 20)
+    f, ref = line_fit(np.r_[x, np.nan], np.r_[y, 1.0]), linregress(x, y)
+    assert f["n"] == 20
+    assert (f["slope"], f["intercept"], f["r"]) == pytest.approx((ref.slope, ref.intercept, ref.rvalue), rel=1e-10)
+    assert f["slope_se"] == pytest.approx(ref.stderr, rel=1e-10)
+    assert math.isnan(line_fit([1, 1, 1], [1, 2, 3])["slope"])
+
+
+def test_shift_room_relates_each_trees_cubes_to_its_change(tmp_path):
+    from vlsforest.experiments.shift_room import run_shift_room
+    from vlsforest.io.voxel_model import VoxelModel
+
+    d = tmp_path / "P1"
+    d.mkdir()
+    sides = {1: 0.10, 2: 0.12, 3: 0.14, 4: 0.20}
+    (d / "targets.csv").write_text("target_id,tree_id,group,z\n"
+                                   + "".join(f"{10 + t},{t},{'conifer' if t < 3 else 'broadleaf'},0\n" for t in sides))
+    ijk = [[t, 0, k] for t in sides for k in range(3)]
+    owner = [t for t in sides for _ in range(3)]
+    half = [sides[t] / 2 for t in owner]
+    VoxelModel(0.25, ijk, owner, half=np.array(half)).save(d / "vox.npz")
+    # the change falls linearly with the side: +5 pp at 0.10 m, 0 at 0.20 m
+    (d / "a.csv").write_text("tree_id,multi_return_pct\n" + "".join(f"{10 + t},50\n" for t in sides))
+    (d / "b.csv").write_text("tree_id,multi_return_pct\n"
+                             + "".join(f"{10 + t},{50 + 5 * (0.20 - s) / 0.10}\n" for t, s in sides.items()))
+    man = {"P1": {"targets": str(d / "targets.csv"),
+                  "methods": {"s": {"voxels": str(d / "vox.npz"), "metrics": {"als": str(d / "a.csv")}},
+                              "r": {"metrics": {"als": str(d / "b.csv")}}}}}
+    res = run_shift_room(man, "s", "r", ["als"], ["multi_return_pct"])
+    v = res["summary"]["als"]["multi_return_pct"]
+    assert v["fit"]["slope"] == pytest.approx(-50.0) and v["fit"]["r"] == pytest.approx(-1.0)
+    assert v["change"]["mean"] == pytest.approx(np.mean([5 * (0.20 - s) / 0.10 for s in sides.values()]))
+    assert v["groups"]["conifer"]["side_m"] == pytest.approx(0.11)
+    assert [r["side_m"] for r in res["trees"]] == pytest.approx(list(sides.values()))
+    with pytest.raises(ConfigError, match="differ"):
+        run_shift_room(man, "s", "s", ["als"])
+    with pytest.raises(ConfigError, match="does not name the s metrics of scenario uls"):
+        run_shift_room(man, "s", "r", ["uls"], ["multi_return_pct"])
+
+
+def test_cli_run_experiments_refuse_bad_inputs_in_one_line(tmp_path, capsys):
+    from vlsforest.cli import main
+
+    out = tmp_path / "x.json"
+    for argv, needle in (
+        (["crown-outline", "--inputs-json", "[1]", "--methods", "m", "--scenarios", "als"], "--inputs-json"),
+        (["crown-outline", "--inputs-json", '{"P1": {}}', "--methods", "m", "--scenarios", "als"], "'targets'"),
+        (["crown-outline", "--inputs-json", json.dumps({"P1": {"targets": str(tmp_path / "none.csv")}}),
+          "--methods", "m", "--scenarios", "als"], "none.csv"),
+        (["shift-room", "--inputs-json", '{"P1": {"targets": "t.csv"}}', "--base", "a", "--shifted", "a",
+          "--scenarios", "als"], "differ"),
+    ):
+        assert main(["experiment", *argv, "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("vlsforest experiment: error:") and needle in err[0], err
+        assert not out.exists()

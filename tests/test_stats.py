@@ -634,3 +634,76 @@ def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
     # an offset within twice its standard error explains nothing: -0.3 cm ± 0.2 cm
     f, _ = _findings(m, vc, tt, experiments=_cog_experiment(z_fine=-0.003))
     assert f["F4"]["cause"].startswith("not established")
+
+
+def _outline_summary(outline, unseen, base):
+    part = {"error": {"mean": outline + unseen + base}, "outline": {"mean": outline}, "unseen": {"mean": unseen},
+            "base": {"mean": base}, "reference_m2": 40.0, "cbh_error_m": 0.0}
+    return {"crown_outline": {"summary": {"fixed_0.25": {"als": part, "uls": part}},
+                              "trees": [{"plot": "P1", "tree_id": t} for t in range(12)]}}
+
+
+def test_f1_cause_from_the_crown_outline():
+    m, vc, tt = study_like(flip=True)  # 0.25 m voxels: CBH too low, CPA too large
+    f, _ = _findings(m, vc, tt)
+    assert f["F1"]["verdict"] == "disagrees" and "not run" in f["F1"]["experiment"]
+    # the model's own outline +22 m² outweighs the −2 m² lost to occlusion and the crown base
+    f, _ = _findings(m, vc, tt, experiments=_outline_summary(22.0, -1.5, -0.5))
+    cause = f["F1"]["cause"]
+    assert cause.startswith("the 0.25 m cubes widen the crown outline") and "(als, uls)" in cause
+    assert "not established for als CBH, uls CBH" in cause
+    assert "als: CPA error +20.00 m² = the model's own outline +22.00" in f["F1"]["experiment"]
+    assert "12 target trees" in f["F1"]["experiment"]
+    # an outline narrower than the losses explains no overestimation
+    f, _ = _findings(m, vc, tt, experiments=_outline_summary(1.0, -5.0, 0.0))
+    assert f["F1"]["cause"].startswith("not established for als, uls CPA")
+
+
+def test_t5_accuracy_order_from_the_crown_outline():
+    m, vc, tt = study_like()
+    m.loc[m["method"] == "fixed_0.02", "cpa"] += 15.0  # 0.02 m: CPA error ≈ +13 m², now the worst fine model
+    f, t5 = _findings(m, vc, tt)
+    row = f["T5:0.02 m fixed"]
+    assert row["verdict"] == "disagrees" and "out of the study's order" in " ".join(row["evidence"])
+    assert "crown-outline experiment not run" in row["experiment"]
+
+    def rows(outlines):
+        return {"crown_outline": {"summary": {}, "trees": [
+            {"plot": "P1", "tree_id": t, "method": me, "cpa_model": 40.0 + o, "cpa_ref": 40.0}
+            for me, o in outlines.items() for t in range(3)]}}
+
+    # the models' own outlines lie as far from the reference as their CPA errors: 6, 12, 13 m²
+    f, _ = _findings(m, vc, tt, experiments=rows({"fixed_0.05": -6.0, "fixed_0.10": -12.0, "fixed_0.02": 13.0}))
+    row = f["T5:0.02 m fixed"]
+    assert "CPA: the models' own crown outlines set the order" in row["cause"] and "CBH: not tested" in row["cause"]
+    assert "reference CPA| fixed_0.05 6.0 m², fixed_0.02 13.0 m²; CPA MAE fixed_0.05 6.0 m², fixed_0.02 13.0 m²" in row["experiment"]
+    f, _ = _findings(m, vc, tt, experiments=rows({"fixed_0.05": -6.0, "fixed_0.10": -12.0, "fixed_0.02": 1.0}))
+    assert "not established: the CPA order does not follow" in f["T5:0.02 m fixed"]["cause"]
+
+
+def test_f6_cause_from_the_shift_room():
+    m, vc, tt = study_like()
+    sel = m["method"] == "scaled_random_shift"
+    m.loc[sel, "multi_return_pct"] = m.loc[sel, "multi_return_pct"] - 7.0
+    f, _ = _findings(m, vc, tt)
+    assert f["F6"]["verdict"] == "disagrees" and "not run" in f["F6"]["experiment"]
+
+    def part(slope, se):
+        fit = {"n": 12, "slope": slope, "slope_se": se, "r": 0.8 * np.sign(slope), "intercept": 0.0}
+        return {"multi_return_pct": {"change": {"mean": -7.0, "se": 0.1, "n": 12}, "fit": fit,
+                                     "groups": {"conifer": {"side_m": 0.11, "change": -8.0, "fit": fit}}}}
+
+    # als: the loss shrinks as the cubes grow (slope +60 pp/m against a −7 pp change); uls: it grows
+    exp = {"shift_room": {"cell_m": 0.25, "trees": [{"plot": "P1", "tree_id": t} for t in range(12)],
+                          "summary": {"als": part(60.0, 10.0), "uls": part(-60.0, 10.0)}}}
+    f, _ = _findings(m, vc, tt, experiments=exp)
+    cause = f["F6"]["cause"]
+    assert cause.startswith("the scaled cubes' size") and "(als multi_return_pct)" in cause
+    assert "not established for uls multi_return_pct" in cause
+    # 95 % CI: 60 ± t(0.975, 10)·10 = 60 ± 22.28 pp/m → +0.38 to +0.82 pp per cm
+    assert "+0.60 pp per cm (95 % CI +0.38 to +0.82)" in f["F6"]["experiment"]
+    assert "conifer 0.110 m in a 0.25 m cell" in f["F6"]["experiment"]
+    # a slope whose interval holds zero explains nothing
+    exp["shift_room"]["summary"]["als"] = part(10.0, 10.0)
+    f, _ = _findings(m, vc, tt, experiments=exp)
+    assert f["F6"]["cause"].startswith("not established")

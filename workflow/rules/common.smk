@@ -341,6 +341,68 @@ def experiment_setting(name, key, default=None):
     return config["experiments"][name].get(key, default)
 
 
+def run_outputs_manifest(methods):
+    """The run's files that the analysis experiments read, by plot (the manifest of
+    vlsforest.experiments.run_outputs): targets, reference tree clouds, and per method its voxel
+    model, tree clouds and metrics per scenario."""
+    out = {}
+    for plot in PLOTS:
+        out[plot] = {
+            "targets": f"results/{plot}/targets.csv",
+            "reference": {sc: f"results/{plot}/reference/{sc}/trees.laz" for sc in SCENARIOS},
+            "methods": {m: {"voxels": f"results/{plot}/{m}/voxels.npz",
+                            "trees": {sc: f"results/{plot}/{m}/{sc}/trees.laz" for sc in SCENARIOS},
+                            "metrics": {sc: f"results/{plot}/{m}/{sc}/metrics.csv" for sc in SCENARIOS}}
+                        for m in methods},
+        }
+    return out
+
+
+def manifest_paths(manifest, keep=lambda key: True):
+    """Every path of a run-outputs manifest whose key (targets, reference, voxels, trees,
+    metrics) ``keep`` accepts: the inputs of the job that reads it."""
+    out = []
+
+    def walk(node, key):
+        if isinstance(node, str):
+            if keep(key):
+                out.append(node)
+        else:
+            for k, v in node.items():
+                walk(v, k if k in ("targets", "reference", "voxels", "trees", "metrics") else key)
+
+    walk(manifest, None)
+    return out
+
+
+def crown_outline_methods():
+    """The methods the crown-outline experiment takes apart: ``experiments.crown_outline.methods``,
+    else every fixed method and the unshifted scaled ones."""
+    named = experiment_setting("crown_outline", "methods")
+    if named:
+        unknown = [m for m in named if m not in METHODS]
+        if unknown:
+            raise WorkflowError(f"Invalid configuration at 'experiments.crown_outline.methods': "
+                                f"{', '.join(map(repr, unknown))} is not a configured method ({', '.join(METHODS)})")
+        return list(named)
+    return [m for m in METHODS if config["methods"][m]["kind"] == "fixed"] + unshifted_scaled_methods()
+
+
+def shift_room_methods():
+    """The unshifted scaled method and its random-shift variant the shift-room experiment compares:
+    ``experiments.shift_room.base`` / ``shifted``, else the first of each kind configured."""
+    ms = config["methods"]
+    base = experiment_setting("shift_room", "base") or (unshifted_scaled_methods() or [None])[0]
+    shifted = experiment_setting("shift_room", "shifted") or next(
+        (m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift") == "random"), None)
+    for key, m in (("base", base), ("shifted", shifted)):
+        if m is None or m not in METHODS:
+            raise WorkflowError(f"Invalid configuration at 'experiments.shift_room.{key}': "
+                                + (f"{m!r} is not a configured method" if m else
+                                   "no such scaled method is configured"))
+    return base, shifted
+
+
 def enabled_experiments():
     """The experiments the config enables, by name → their result file."""
     return {name: f"results/experiments/{name}.json"

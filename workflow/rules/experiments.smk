@@ -54,3 +54,57 @@ rule experiment_recording_detector:
     shell:
         "vlsforest experiment recording-detector --config-json {params.settings:q} --plot {params.plot} "
         "--sensor {params.sensor} --variants-json {params.variants:q} -o {output} > {log} 2>&1"
+
+
+rule experiment_crown_outline:
+    # takes the run's CPA errors apart (no simulation): reads what the manifest names
+    input:
+        lambda wildcards: manifest_paths(run_outputs_manifest(crown_outline_methods()),
+                                         keep=lambda key: key != "metrics"),
+    output:
+        "results/experiments/crown_outline.json",
+    log:
+        "logs/experiments/crown_outline.log",
+    benchmark:
+        "logs/benchmarks/experiments/crown_outline.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        inputs=lambda wildcards: json.dumps(run_outputs_manifest(crown_outline_methods()), sort_keys=True),
+        methods=lambda wildcards: " ".join(crown_outline_methods()),
+        scenarios=" ".join(SCENARIOS),
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment crown-outline --inputs-json {params.inputs:q} --methods {params.methods} "
+        "--scenarios {params.scenarios} -o {output} > {log} 2>&1"
+
+
+rule experiment_shift_room:
+    # relates the run's random-shift changes to the cube sizes (no simulation)
+    input:
+        lambda wildcards: manifest_paths(run_outputs_manifest(shift_room_methods()),
+                                         keep=lambda key: key in ("targets", "metrics"))
+        + [f"results/{plot}/{shift_room_methods()[0]}/voxels.npz" for plot in PLOTS],
+    output:
+        "results/experiments/shift_room.json",
+    log:
+        "logs/experiments/shift_room.log",
+    benchmark:
+        "logs/benchmarks/experiments/shift_room.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        inputs=lambda wildcards: json.dumps(run_outputs_manifest(shift_room_methods()), sort_keys=True),
+        base=lambda wildcards: shift_room_methods()[0],
+        shifted=lambda wildcards: shift_room_methods()[1],
+        scenarios=" ".join(SCENARIOS),
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment shift-room --inputs-json {params.inputs:q} --base {params.base} "
+        "--shifted {params.shifted} --scenarios {params.scenarios} -o {output} > {log} 2>&1"

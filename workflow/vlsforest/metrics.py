@@ -92,6 +92,7 @@ __all__ = [
     "CBH_CONVENTIONS",
     "tree_metrics",
     "cloud_metrics",
+    "crown_projection_area",
     "zpcum_lidr",
 ]
 
@@ -227,6 +228,41 @@ def tree_metrics(
     out["cbh"] = float(cbh)
     out["cpa"] = _cpa(xy, z, cbh)
     return out
+
+
+def crown_projection_area(xyz, cbh: float, *, ground_z: float = 0.0) -> float:
+    """The ``cpa`` of :func:`tree_metrics` with a given crown base height.
+
+    Parameters
+    ----------
+    xyz : array_like, shape (n, 3)
+        The tree's points.
+    cbh : float
+        Crown base height above ``ground_z`` (m): the points at or above it are the crown.
+    ground_z : float
+        Terrain height at the stem.
+
+    Returns
+    -------
+    float
+        The area (m²) of the 2-D convex hull of the crown points' xy (of all points when 3 or
+        fewer are in the crown; 0.0 when they have no area), as :func:`tree_metrics` computes
+        ``cpa`` from its own CBH.
+
+    Raises
+    ------
+    InputDataError
+        When ``xyz`` is not (n, 3) or holds NaN/inf.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) if np.size(xyz) == 0 else np.asarray(xyz, np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputDataError(f"coordinates must have shape (n, 3), got {xyz.shape}")
+    if not np.isfinite(xyz).all():
+        raise InputDataError("coordinates hold NaN or infinite values")
+    if len(xyz) == 0:
+        return 0.0
+    xy = xyz[:, :2] - xyz[0, :2]
+    return _cpa(xy - xy.mean(axis=0), xyz[:, 2] - float(ground_z), float(cbh))
 
 
 def cloud_metrics(

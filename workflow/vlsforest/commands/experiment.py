@@ -8,6 +8,14 @@ fill per step (:func:`vlsforest.experiments.tls_step.run_tls_step`).
 --variants-json JSON -o recording_detector.json`` records a plot with the recording physics and
 with detector variants and writes the target trees' multiple-return shares
 (:func:`vlsforest.experiments.recording_detector.run_recording_detector`).
+``vlsforest experiment crown-outline --inputs-json JSON --methods fixed_0.25 … --scenarios als uls
+-o crown_outline.json`` splits each method's CPA error on a finished run into the model's own
+outline, the part the simulation does not see and the crown base
+(:func:`vlsforest.experiments.crown_outline.run_crown_outline`).
+``vlsforest experiment shift-room --inputs-json JSON --base scaled --shifted scaled_random_shift
+--scenarios als uls -o shift_room.json`` relates each target tree's cube size to what the random
+shift changes (:func:`vlsforest.experiments.shift_room.run_shift_room`). ``--inputs-json`` names
+the run's files (:mod:`vlsforest.experiments.run_outputs`).
 
 Same config and seed give the same bytes.
 """
@@ -55,6 +63,29 @@ def register(subparsers) -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
     r.set_defaults(func=run)
     declare_outputs(r, output=None)
+    inputs_help = ("the run's files by plot: targets, reference tree clouds, and per method voxels, tree clouds "
+                   "and metrics (vlsforest.experiments.run_outputs)")
+    c = sub.add_parser("crown-outline", help="where the voxel models' crown projection area errors come from",
+                       description="Split each method's CPA error on a finished run into the model's own outline, "
+                                   "the part the simulation does not see, and the simulated crown base.")
+    c.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
+    c.add_argument("--methods", nargs="+", required=True, metavar="METHOD", help="the voxel methods")
+    c.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
+    c.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
+    c.set_defaults(func=run)
+    declare_outputs(c, output=None)
+    h = sub.add_parser("shift-room", help="the scaled cubes' size and what the random shift changes",
+                       description="Relate each target tree's mean cube side in the unshifted scaled model to the "
+                                   "change of its metrics under the random shift, over the trees of a finished run.")
+    h.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
+    h.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
+    h.add_argument("--shifted", required=True, metavar="METHOD", help="its randomly shifted variant")
+    h.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
+    h.add_argument("--metrics", nargs="+", default=["hmean", "multi_return_pct", "cbh", "cpa"], metavar="METRIC",
+                   help="metrics whose change is related to the cube size (default: the study's finding's four)")
+    h.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
+    h.set_defaults(func=run)
+    declare_outputs(h, output=None)
     return p
 
 
@@ -76,6 +107,8 @@ def run(args) -> int:
     """Execute ``vlsforest experiment`` with parsed ``args``; return 0."""
     from vlsforest.io.atomic import write_text
 
+    if args.experiment in ("crown-outline", "shift-room"):
+        return _run_on_outputs(args, write_text)
     cfg = _json_object(args.config_json, "--config-json")
     seed = cfg.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -102,4 +135,28 @@ def run(args) -> int:
     for s in res["steps"]:
         print(f"vlsforest experiment tls-step: {s['step_deg']:g}°: {s['cells_fine']} / {s['cells_coarse']} cells, "
               f"ratio {s['ratio']:.1f}")
+    return 0
+
+
+def _run_on_outputs(args, write_text) -> int:
+    """The experiments that take a finished run's files apart (``crown-outline``, ``shift-room``)."""
+    manifest = _json_object(args.inputs_json, "--inputs-json")
+    if args.experiment == "crown-outline":
+        from vlsforest.experiments.crown_outline import run_crown_outline
+
+        res = run_crown_outline(manifest, args.methods, args.scenarios, progress=_log("crown-outline"))
+        write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+        for m, per in res["summary"].items():
+            for sc, v in per.items():
+                print(f"vlsforest experiment crown-outline: {m} {sc}: CPA error {v['error']['mean']:+.2f} m² = "
+                      + " ".join(f"{k} {v[k]['mean']:+.2f}" for k in ("outline", "unseen", "base")))
+        return 0
+    from vlsforest.experiments.shift_room import run_shift_room
+
+    res = run_shift_room(manifest, args.base, args.shifted, args.scenarios, args.metrics, progress=_log("shift-room"))
+    write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+    for sc, per in res["summary"].items():
+        for k, v in per.items():
+            print(f"vlsforest experiment shift-room: {sc} {k}: change {v['change']['mean']:+.3f}, "
+                  f"r = {v['fit']['r']:+.2f} with the cube side")
     return 0
