@@ -312,3 +312,17 @@ def test_cli_run_experiments_refuse_bad_inputs_in_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("vlsforest experiment: error:") and needle in err[0], err
         assert not out.exists()
+
+
+def test_cli_unknown_plot_names_the_option(tmp_path, capsys):
+    from vlsforest.cli import main
+
+    out = tmp_path / "x.json"
+    for name in ("tls-step", "recording-detector"):
+        extra = ["--variants-json", "{}"] if name == "recording-detector" else []
+        argv = ["experiment", name, "--config-json", '{"forest": {"preset": "quick"}}', "--plot", "Z9", *extra,
+                "-o", str(out)]
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("vlsforest experiment: error: --plot: unknown plot 'Z9' (known: Q1)"), err
+        assert not out.exists()

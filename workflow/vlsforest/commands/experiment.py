@@ -48,9 +48,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="scan only a horizontal slab of M metres through the middle of each crown")
     t.add_argument("--cells", type=float, nargs="*", default=[], metavar="M",
                    help="further cell sizes (m) to count and give the fill of, e.g. the fixed methods' 0.1 0.05")
-    t.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
-    t.set_defaults(func=run)
-    declare_outputs(t, output=None)
+    _result_file(t)
     r = sub.add_parser("recording-detector", help="the recordings' detector and their multiple-return share",
                        description="Record a plot again with the recording physics and with detector variants "
                                    "and report the target trees' multiple-return shares by species group.")
@@ -60,9 +58,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     r.add_argument("--sensor", choices=("als", "uls"), default="uls", help="the recording (default uls)")
     r.add_argument("--variants-json", required=True, metavar="JSON",
                    help='variant name → recording-physics keys, e.g. {"helios_rule": {"peak_rule": {"physical": 0}}}')
-    r.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
-    r.set_defaults(func=run)
-    declare_outputs(r, output=None)
+    _result_file(r)
     inputs_help = ("the run's files by plot: targets, reference tree clouds, and per method voxels, tree clouds "
                    "and metrics (vlsforest.experiments.run_outputs)")
     c = sub.add_parser("crown-outline", help="where the voxel models' crown projection area errors come from",
@@ -71,9 +67,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     c.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
     c.add_argument("--methods", nargs="+", required=True, metavar="METHOD", help="the voxel methods")
     c.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
-    c.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
-    c.set_defaults(func=run)
-    declare_outputs(c, output=None)
+    _result_file(c)
     h = sub.add_parser("shift-room", help="the scaled cubes' size and what the random shift changes",
                        description="Relate each target tree's mean cube side in the unshifted scaled model to the "
                                    "change of its metrics under the random shift, over the trees of a finished run.")
@@ -83,10 +77,25 @@ def register(subparsers) -> argparse.ArgumentParser:
     h.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
     h.add_argument("--metrics", nargs="+", default=["hmean", "multi_return_pct", "cbh", "cpa"], metavar="METRIC",
                    help="metrics whose change is related to the cube size (default: the study's finding's four)")
-    h.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
-    h.set_defaults(func=run)
-    declare_outputs(h, output=None)
+    _result_file(h)
     return p
+
+
+def _result_file(parser) -> None:
+    """The ``-o`` option every experiment writes its JSON result to, and the command's run."""
+    parser.add_argument("-o", "--output", required=True, type=Path, metavar="JSON", help="result file")
+    parser.set_defaults(func=run)
+    declare_outputs(parser, output=None)
+
+
+def _check_plot(cfg: dict, plot: str, seed: int) -> None:
+    """Refuse a ``--plot`` that is not a plot of the configured virtual forest (naming the option)."""
+    from vlsforest.synth.forest import forest_from_config
+    from vlsforest.synth.record import synth_settings
+
+    names = [p.name for p in forest_from_config(synth_settings(cfg)["forest"], seed)]
+    if plot not in names:
+        raise ConfigError(f"--plot: unknown plot {plot!r} (known: {', '.join(names)})")
 
 
 def _json_object(text: str, option: str) -> dict:
@@ -113,6 +122,7 @@ def run(args) -> int:
     seed = cfg.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"--config-json: seed must be an integer ≥ 0, got {seed!r}")
+    _check_plot(cfg, args.plot, seed)
     if args.experiment == "recording-detector":
         from vlsforest.experiments.recording_detector import run_recording_detector
 
