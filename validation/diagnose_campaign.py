@@ -39,6 +39,14 @@ sys.path.insert(0, str(REPO / "tests"))
 #: the campaign's current results (one JSON row per run)
 RESULTS = REPO / "validation" / "results" / "diagnose_campaign.jsonl"
 
+#: the sensitivity scenarios with the physical detector the recordings have (config/physical-detector.yaml):
+#: the campaign's simulations use its ULS scenario, so that a "real" recording differs from them by
+#: the hidden effect alone (the quick study's own ULS scenario runs HELIOS++ 1.0.8's peak rule, which
+#: the recordings do not have: every case would carry that difference)
+PHYSICAL = REPO / "config" / "physical-detector.yaml"
+#: the ULS scenario of PHYSICAL the diagnosis simulates
+SCENARIO = "uls_physical"
+
 #: the simulation's own physics (what it models) + finer beam sampling in the "real" recording
 BASE = {"als": {"beam_sample_quality": 4}, "uls": {"beam_sample_quality": 4},
         "tls": {"range_noise": {"sigma_m": 0.005}}}
@@ -73,9 +81,9 @@ WITHHELD = {"out_of_library": ("noise",)}
 
 
 def _quick_uls_survey() -> dict:
-    """The quick configuration's ULS survey mapping (the diagnosis' baseline beam)."""
-    cfg = yaml.safe_load((REPO / "config" / "quick.yaml").read_text())
-    return cfg["scenarios"]["uls"]
+    """The ULS survey mapping the campaign simulates (the diagnosis' baseline beam)."""
+    cfg = yaml.safe_load(PHYSICAL.read_text())
+    return cfg["scenarios"][SCENARIO]
 
 
 def _group_fit_error(case: str, fitted: dict):
@@ -121,9 +129,9 @@ def _quick_view(seed: int, workdir: Path) -> Path:
 
     wd = workdir / f"seed{seed}"
     wd.mkdir(parents=True, exist_ok=True)
-    if not (wd / "results" / "Q1" / "scaled" / "scene" / "scene.yaml").is_file():
-        proc = snakemake_cli("results/Q1/scaled/scene", "results/Q1/surveys/uls.yaml",
-                             "results/Q1/segment", "--cores", 2, "--configfile", QUICK,
+    if not (wd / "results" / "Q1" / "surveys" / f"{SCENARIO}.yaml").is_file():
+        proc = snakemake_cli("results/Q1/scaled/scene", f"results/Q1/surveys/{SCENARIO}.yaml",
+                             "results/Q1/segment", "--cores", 2, "--configfile", QUICK, PHYSICAL,
                              "--config", f"seed={seed}", cwd=wd, timeout=3600)
         if proc.returncode != 0:
             raise SystemExit(proc.stderr[-3000:])
@@ -177,7 +185,7 @@ def _run_case(seed: int, case: str, workdir: Path, sim_quality: int | None = Non
     cfg = workdir / f"seed{seed}" / "sim.yaml"
     extra = {} if sim_quality is None else {"beam_sample_quality": sim_quality}
     cfg.write_text(yaml.safe_dump({"scenario": "uls", "seed": 0, "folds": 3, **extra, "plots": {"Q1": {
-        "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / "uls.yaml"),
+        "scene": str(res / "scaled" / "scene" / "scene.yaml"), "survey": str(res / "surveys" / f"{SCENARIO}.yaml"),
         "segment": str(res / "segment"), "radius": 0.3, "margin": 5}}}))
     forest = _record(seed, case, workdir)
     setup = load_setup(cfg, real_dir=forest / "plots")
