@@ -321,6 +321,21 @@ def summarise(df) -> None:
             for n, c in counts.items()))
 
 
+def _commit() -> str:
+    """The code version a row was run with: the repository's short commit ("" outside git), with
+    "+" where the working tree differs from it."""
+    import subprocess
+
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
+
+    head = git("rev-parse", "--short", "HEAD")
+    if head.returncode != 0:
+        return ""
+    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    return head.stdout.strip() + ("+" if dirty else "")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -356,7 +371,7 @@ def main(argv=None) -> int:
             for case in cases:
                 if (seed, case, a.real_quality, a.sim_quality, scene) in have:
                     continue
-                row = _run_case(seed, case, a.workdir, a.sim_quality, a.truth_scene)
+                row = {**_run_case(seed, case, a.workdir, a.sim_quality, a.truth_scene), "commit": _commit()}
                 print(json.dumps(row), flush=True)
                 with out.open("a") as fh:
                     fh.write(json.dumps(row) + "\n")
