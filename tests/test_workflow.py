@@ -60,6 +60,8 @@ def _expected_outputs(cfg):
     out |= {f"results/summary/{f}" for f in ("tree_metrics.csv", "voxel_counts.csv", "sim_times.csv",
                                              "pad_validation.csv", "pad_validation.png", "figures")}
     out |= {f"results/summary/stats/{f}" for f in STATS_FILES}
+    out |= {f"results/experiments/{name}.json" for name, block in (cfg.get("experiments") or {}).items()
+            if block.get("enabled")}
     diag = cfg.get("diagnosis") or {}
     if diag.get("enabled"):
         for scenario in diag.get("scenarios", cfg["scenarios"]):
@@ -79,10 +81,23 @@ def _expected_outputs(cfg):
     return out
 
 
+def _run_file_experiments(cfg, methods):
+    """The enabled experiments that read the run's files of any of ``methods`` (crown outline:
+    the fixed and unshifted scaled methods' tree clouds; shift room: the scaled methods' metrics)."""
+    ms, exps = cfg["methods"], cfg.get("experiments") or {}
+    reads = {"crown_outline": [m for m, e in ms.items()
+                               if e["kind"] == "fixed" or (e["kind"] == "scaled" and e.get("shift", "none") == "none")],
+             "shift_room": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "random")]}
+    return {f"results/experiments/{name}.json" for name, used in reads.items()
+            if (exps.get(name) or {}).get("enabled") and set(used) & set(methods)}
+
+
 def _downstream_of_sims(cfg, pairs):
-    """Outputs of the simulation branch for (method, scenario) pairs, plus the summaries."""
+    """Outputs of the simulation branch for (method, scenario) pairs, plus the summaries and the
+    experiments that read those simulations."""
     out = {"results/summary/tree_metrics.csv", "results/summary/sim_times.csv", "results/summary/figures"}
     out |= {f"results/summary/stats/{f}" for f in STATS_FILES}
+    out |= _run_file_experiments(cfg, {m for m, _ in pairs})
     for plot in cfg["plots"]:
         for method, scenario in pairs:
             out |= {f"results/{plot}/{method}/{scenario}/{f}"
@@ -664,4 +679,5 @@ def test_added_plot_rebuilds_only_that_plot_and_the_summaries(quick_run):
     expected -= {"results/R1/pad/validation.csv", "results/R1/pad/validation.png"}  # no truth for real data
     expected |= {f"results/summary/{f}" for f in ("tree_metrics.csv", "voxel_counts.csv", "sim_times.csv", "figures")}
     expected |= {f"results/summary/stats/{f}" for f in STATS_FILES}
+    expected |= _run_file_experiments(cfg, cfg["methods"])  # they read every plot
     assert updated == expected
