@@ -93,6 +93,9 @@ RULE_IMPORTS = {
     "experiment_tls_step": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.tls_step"]),
     "experiment_recording_detector": ("experiment", ["vlsforest.commands.experiment",
                                                      "vlsforest.experiments.recording_detector"]),
+    "experiment_crown_outline": ("experiment", ["vlsforest.commands.experiment",
+                                                "vlsforest.experiments.crown_outline"]),
+    "experiment_shift_room": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.shift_room"]),
 }
 
 
