@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from vlsforest.errors import ConfigError
-from vlsforest.sim.deflector import deflect, tls_grid
+from vlsforest.sim.deflector import deflect, deflector_pattern, sweep, tls_grid
 from vlsforest.sim.pulses import PulseBatch
 from vlsforest.sim.scanner import (
     FLAT_KEYS,
@@ -98,22 +98,55 @@ def test_presets_load_and_validate():
     assert tls.detector.range_noise_m == 0.005
 
 
+def helios_mirror_angles(half_deg, freq, prf, n):
+    """HELIOS++ 1.0.8's PolygonMirrorBeamDeflector (doSimStep) run for ``n`` pulses from a leg's
+    start: the angle starts at 0; before each pulse it grows by (freq · 2M) / prf radians and is
+    set to −M once it reaches +M. Returns the pulses' angles in degrees."""
+    m = half_deg * (math.pi / 180.0)
+    step = (freq * (m - (-m))) / prf
+    x, out = 0.0, []
+    for _ in range(n):
+        x += step
+        if x >= m:
+            x = -m
+        out.append(x)
+    return np.degrees(out)
+
+
 def test_vq780i_emits_two_thirds_of_its_prf():
-    """The mirror sweeps ±45° at 250 lines/s and 1 MHz (4,000 slots per line); the device emits
-    within ±30°: 2/3 of the slots, 2,667 per line, 666,667 per second."""
+    """The mirror sweeps ±45° at 250 lines/s and 1 MHz, stepped as HELIOS++ steps it: 4,001 slots
+    per line (its float sum of 4,000 steps of 0.0225° stays below 45°, so a line takes one slot
+    more); the device emits within ±30°: 2,667 per line, 2/3 of the PRF."""
     vq = PRESETS["riegl_vq780i"]
-    emitted, _, _, angle = deflect(vq, np.arange(1_000_000))
-    per_line = emitted.reshape(250, 4000).sum(axis=1)
-    # nodes -45 + 90·j/4000 within [-30, 30]: j = 667 … 3333, i.e. 2,667 per line
+    n = 1_000_000
+    emitted, _, _, angle = deflect(vq, np.arange(n))
+    ref = helios_mirror_angles(45.0, 250.0, 1e6, n)
+    starts = np.flatnonzero(ref == -45.0)
+    assert np.all(np.diff(starts) == 4001) and starts[0] == 2000
+    np.testing.assert_array_equal(emitted, np.abs(ref) <= 30.0)
+    np.testing.assert_allclose(angle, ref[emitted], atol=1e-9)
+    # every full line: nodes -45 + 0.0225·j within [-30, 30], j = 667 … 3333
+    per_line = np.add.reduceat(emitted, starts)[:-1]
     assert np.all(per_line == 2667)
-    assert emitted.sum() == 250 * 2667
-    assert emitted.sum() / 1e6 == pytest.approx(2.0 / 3.0, abs=1e-3)
+    assert emitted.sum() / n == pytest.approx(2.0 / 3.0, abs=1e-3)
     assert np.abs(angle).max() <= 30.0 + 1e-9 and emission_half_angle_deg(vq) == 30.0
     # the same through a survey's compiled pulse path, over one second of flight
     s = survey_from_dict(airborne("riegl_vq780i", legs=[{"start": [0, 0, 700], "end": [0, 51, 700]}], speed=51.0))
-    assert s.n_slots == 1_000_000
-    assert len(all_pulses(s)) == 250 * 2667
-    assert len(s.pulses_toward(0, s.n_slots, [-1e4, -1e4, -1e4], [1e4, 1e4, 1e4], 0.0)[2]) == 250 * 2667
+    assert s.n_slots == n
+    assert len(all_pulses(s)) == emitted.sum()
+    assert len(s.pulses_toward(0, s.n_slots, [-1e4, -1e4, -1e4], [1e4, 1e4, 1e4], 0.0)[2]) == emitted.sum()
+
+
+def test_minivux_steps_as_helios():
+    """The rotating mirror at 100 kHz / 50 Hz: HELIOS++'s float sum takes 2,001 slots per turn,
+    and a leg starts at nadir (the first pulse one step right of it)."""
+    ref = helios_mirror_angles(180.0, 50.0, 1e5, 12_000)
+    starts = np.flatnonzero(ref == -180.0)
+    assert np.all(np.diff(starts) == 2001)
+    emitted, _, _, angle = deflect(PRESETS["riegl_minivux1uav"], np.arange(12_000))
+    np.testing.assert_array_equal(emitted, np.abs(ref) <= 90.0 + 1e-9)
+    np.testing.assert_allclose(angle, ref[emitted], atol=1e-9)
+    assert angle[0] == pytest.approx(0.18)
 
 
 def test_datasheet_divergences_are_stored_as_the_half_angle():
@@ -283,15 +316,19 @@ def test_custom_scanner_mapping():
 
 
 def test_polygon_line_has_prf_over_freq_pulses_evenly_spread():
-    s = survey_from_dict(airborne(custom("polygon")))  # 1000 Hz / 10 Hz → 100 slots per line
+    s = survey_from_dict(airborne(custom("polygon")))  # 1000 Hz / 10 Hz → 0.6° steps over ±30°
     assert s.n_slots == 10 * 1000  # 100 m at 10 m/s = 10 s at 1 kHz
     b = all_pulses(s)
     assert len(b) == s.n_slots  # scan angle = device max: everything emitted
-    lines = b.scan_angle_deg.reshape(-1, 100)
-    assert lines.shape[0] == 100
-    expected = -30.0 + 60.0 * np.arange(100) / 100
-    assert np.allclose(lines, expected[None, :], atol=1e-9)
-    assert b.scan_angle_deg.min() == pytest.approx(-30.0) and b.scan_angle_deg.max() < 30.0
+    ref = helios_mirror_angles(30.0, 10.0, 1000.0, s.n_slots)
+    np.testing.assert_allclose(b.scan_angle_deg, ref, atol=1e-9)
+    # the first line runs from one step right of nadir, every later one from -30° in even steps
+    starts = np.flatnonzero(np.isclose(b.scan_angle_deg, -30.0, atol=1e-9))
+    period = int(np.diff(starts)[0])
+    assert period in (100, 101) and np.all(np.diff(starts) == period)
+    line = b.scan_angle_deg[starts[0]:starts[1]]
+    np.testing.assert_allclose(line, -30.0 + 0.6 * np.arange(period), atol=1e-9)
+    assert b.scan_angle_deg[0] == pytest.approx(0.6) and b.scan_angle_deg.max() < 30.0
 
 
 def test_polygon_loses_pulses_beyond_the_survey_angle():
@@ -299,9 +336,12 @@ def test_polygon_loses_pulses_beyond_the_survey_angle():
     s = survey_from_dict(airborne(sc))
     b = all_pulses(s)
     assert np.all(np.abs(b.scan_angle_deg) <= 20.0 + 1e-9)
-    # mirror steps 0.8° over [-40, 40): the emitted nodes are -20, -19.2, ..., 20 → 51 of 100 per line
+    # mirror steps 0.8° over [-40, 40): the emitted nodes are -20, -19.2, ..., 20, 51 per line
+    ref = helios_mirror_angles(40.0, 10.0, 1000.0, s.n_slots)
+    assert len(b) == (np.abs(ref) <= 20.0 + 1e-9).sum()
+    starts = np.flatnonzero(np.isclose(ref, -40.0))
+    assert np.all(np.add.reduceat(np.abs(ref) <= 20.0 + 1e-9, starts)[:-1] == 51)
     assert len(b) / s.n_slots == pytest.approx(20.0 / 40.0, abs=1.0 / 100 + 1e-12)
-    assert len(b) == 51 * 100
 
 
 def test_rotating_window_emits_half_the_slots():
@@ -350,6 +390,10 @@ def _documented_pattern(sc, k):
     """The deflector patterns of vlsforest.sim.deflector's docstring, slot by slot in plain Python:
     (emitted, direction, scan_dir, scan angle) in the body frame."""
     out = []
+    mirror = None
+    if sc.deflector.kind in ("polygon", "rotating"):
+        m = sc.deflector.max_scan_angle_deg if sc.deflector.kind == "polygon" else 180.0
+        mirror = helios_mirror_angles(m, sc.deflector.scan_freq_hz, sc.emitter.prf_hz, int(k.max()) + 1)
     for kk in k.tolist():
         if sc.deflector.kind == "tls":
             n_el = int(round((sc.tls.v_fov_deg[1] - sc.tls.v_fov_deg[0]) / sc.tls.v_step_deg)) + 1
@@ -367,11 +411,8 @@ def _documented_pattern(sc, k):
             out.append((True, d, (math.cos(phi), -math.sin(phi), 0.0), math.degrees(math.atan2(d[0], -d[2]))))
             continue
         sign = 1.0
-        if sc.deflector.kind == "polygon":
-            m = sc.deflector.max_scan_angle_deg
-            a = -m + 2 * m * phase
-        elif sc.deflector.kind == "rotating":
-            a = -180.0 + 360.0 * phase
+        if mirror is not None:
+            a = mirror[kk]
         else:  # oscillating: a triangle wave, back on odd lines
             t = sc.deflector.scan_angle_deg
             sign = -1.0 if line % 2 else 1.0
@@ -528,16 +569,21 @@ def test_scan_line_bound_is_tight_for_a_small_far_box():
     s = survey_from_dict(airborne(custom("rotating", scan_angle_deg=80.0, max_scan_angle_deg=90.0, scan_freq_hz=9.0),
                                   legs=[{"start": [0, 0, 100], "end": [0, 100, 100]}]))
     m = s.motion
-    args = (m.p0, m.vel, m.rot, s.scanner.emitter.prf_hz, s.scanner.deflector.scan_freq_hz)
+    pattern = deflector_pattern(s.scanner)
+    args = (m.p0, m.vel, m.rot, pattern.prf, pattern.freq, pattern.first, pattern.period)
     n_k = int(m.offsets[1] - m.offsets[0])
     # the line at t ≈ 0.5 s (platform at y ≈ 5 m) and a 2 m box straight below it
-    line = float(np.floor(0.5 * s.scanner.deflector.scan_freq_hz))
+    line = float(sweep(pattern.kind, int(0.5 * pattern.prf), *pattern.args()[1:7])[0])
+    assert line >= 1
     mode, phi, beta = _line_window(0, line, n_k, *args, np.array([-1.0, 4.0, -1.0]), np.array([1.0, 6.0, 1.0]), 1e-3)
     assert mode == 2
     b = s.pulses(0, s.n_slots)
-    below = np.argmin(np.abs(b.direction[:, 2] + 1) + np.abs(b.gps_time - 0.55))
+    k_lo = pattern.first + (line - 1) * pattern.period
+    in_line = np.flatnonzero((b.slot >= k_lo) & (b.slot < k_lo + pattern.period))
+    below = in_line[np.argmin(np.abs(b.direction[in_line, 2] + 1))]
     r_below = np.radians(b.scan_angle_deg[below])
-    assert abs(r_below - phi) < 0.01  # the window is centred on the nadir beam
+    # the window is centred on nadir: the line's beam nearest to it lies within half a step
+    assert abs(r_below - phi) <= 0.5 * np.radians(pattern.b) + 1e-9
     assert np.sqrt(3) / 101 < beta < 3 * np.sqrt(3) / 99  # half-diagonal / range, with the line's motion and padding
     mode, _, _ = _line_window(0, line, n_k, *args, np.array([-1.0, 40.0, -1.0]), np.array([1.0, 42.0, 1.0]), 1e-3)
     assert mode == 0  # 35 m ahead of a line that sweeps across track
@@ -623,16 +669,16 @@ def test_flat_ground_footprint_spacing():
     s = survey_from_dict(airborne("riegl_vq780i", legs=[{"start": [0, 0, h], "end": [0, 10.2, h]}], speed=speed))
     b = all_pulses(s)
     p = ground_hits(b)
-    # across track at nadir: altitude × angular step (the mirror's 90° over 4000 slots per line,
-    # of which the 2667 within ±30° are emitted)
+    # across track at nadir: altitude × angular step (the mirror's 90° in steps of 90°/4000)
     dtheta = math.radians(90.0 / 4000)
-    line0 = p[:2667]
+    starts = np.flatnonzero(np.diff(b.scan_angle_deg) < 0) + 1  # a line after the first starts at -30°
+    line0, line1 = p[starts[0]:starts[1]], p[starts[1]:starts[2]]
+    assert len(line0) == len(line1) == 2667
     mid = np.argmin(np.abs(line0[:, 0]))
     spacing = line0[mid + 1, 0] - line0[mid, 0]
     assert spacing == pytest.approx(h * dtheta, rel=1e-3)
-    # along track: lines are speed/scan_freq apart
-    line1 = p[2667:2 * 2667]
-    assert line1[mid, 1] - line0[mid, 1] == pytest.approx(speed / 250.0, rel=1e-9)
+    # along track: lines are speed × (slots per line) / PRF apart, 4,001 slots as HELIOS++ steps them
+    assert line1[mid, 1] - line0[mid, 1] == pytest.approx(speed * 4001 / 1e6, rel=1e-9)
     # within one line the spot drifts by speed/PRF per slot
     assert line0[mid + 1, 1] - line0[mid, 1] == pytest.approx(speed / 1e6, rel=1e-6)
     # swath: ±30° → 2 h tan 30°; the ground points span it up to one across-track step

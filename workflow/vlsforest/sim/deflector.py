@@ -3,19 +3,27 @@
 A scanner's deflector turns the slot index *within one flight line or scan* into the beam
 direction in the body frame: x = right, y = forward (flight direction), z = up; nadir is −z.
 Angles are in degrees unless the name says otherwise. ``f = scan_freq_hz / prf_hz`` is the
-fraction of a line swept per slot, and every flight line starts a new scan line.
+fraction of a line swept per slot, and every flight line starts a new scan line (and, for
+``polygon`` and ``rotating``, a new sweep from nadir).
 
 ``polygon``
-    Sawtooth. The mirror angle of slot k is ``a = −M + 2M·frac(k·f)`` with M the device
-    half-sweep ``max_scan_angle_deg``; a line holds ``PRF/scan_freq`` slots spread evenly over
-    [−M, +M). A pulse is emitted only if ``|a| ≤ min(effective_max_scan_angle_deg,
-    scan_angle_deg)`` (HELIOS++ 1.0.8's ``PolygonMirrorBeamDeflector``): the RIEGL VQ-780i's
-    mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its PRF.
+    Sawtooth over the device half-sweep M = ``max_scan_angle_deg``, stepped as HELIOS++ 1.0.8's
+    ``PolygonMirrorBeamDeflector`` steps it: a line starts at the angle 0 (nadir), each slot
+    first adds the step ``δ = 2M·f`` and the slot is then emitted at that angle, and when the
+    sum reaches +M it is reset to −M (that slot's angle). So slot k of the first line looks at
+    ``(k+1)·δ`` and every later line runs ``−M, −M+δ, −M+2δ, …`` up to the last angle below
+    +M; the sum is accumulated in float64 radians, and its rounding decides whether a line holds
+    ``1/f`` or ``1/f + 1`` slots (:func:`helios_line_slots`; for the VQ-780i at 1 MHz / 250 Hz
+    and the miniVUX-1UAV at 100 kHz / 50 Hz one slot more: 4,001 and 2,001). A pulse is emitted
+    only if ``|angle| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``: the RIEGL
+    VQ-780i's mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its
+    PRF. The slots and angles are those of HELIOS++ on the same survey, so that both tools'
+    beams fall on the same spots.
 ``rotating``
-    A 360° mirror turning ``scan_freq_hz`` times a second: ``a = −180 + 360·frac(k·f)``
-    (slot 0 looks at the zenith, then the beam sweeps left → nadir → right). Emitted only if
-    ``|a| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``; with the ±90° survey window of
-    the miniVUX-1UAV about half of the slots are emitted.
+    A 360° mirror turning ``scan_freq_hz`` times a second, stepped as ``polygon`` with M = 180°
+    (a line starts at nadir and turns right → zenith → left → nadir). Emitted only if
+    ``|angle| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``; with the ±90° survey
+    window of the miniVUX-1UAV about half of the slots are emitted.
 ``oscillating``
     Triangle wave between ±scan_angle_deg, ``PRF/scan_freq`` slots per line (one line = one
     sweep from one side to the other; even lines sweep left → right, odd lines back). The
@@ -74,6 +82,7 @@ __all__ = [
     "deflect",
     "deflect_pattern",
     "deflector_pattern",
+    "helios_line_slots",
     "node_frame",
     "sweep",
     "tls_grid",
@@ -97,8 +106,12 @@ class DeflectorPattern:
     freq : float
         Scan lines (conic: rotations) per second; 0 for tls.
     a, b : float
-        The sweep angle ``a + b·phase`` (degrees) of polygon and rotating; oscillating sweeps
-        ``−a + b·phase`` on even lines and ``a − b·phase`` on odd ones; 0 for conic and tls.
+        Polygon and rotating: the angle ``a = −M`` a line after the first starts at and the
+        step ``b = δ`` per slot (degrees); oscillating sweeps ``−a + b·phase`` on even lines and
+        ``a − b·phase`` on odd ones; 0 for conic and tls.
+    first, period : int
+        Polygon and rotating: the slots of the first line and of every later one
+        (:func:`helios_line_slots`); 0 for the other patterns.
     window : float
         A slot is emitted when ``|angle| <= window`` (inf: every slot).
     sin_cone, cos_cone : float
@@ -114,6 +127,8 @@ class DeflectorPattern:
     freq: float
     a: float
     b: float
+    first: int
+    period: int
     window: float
     sin_cone: float
     cos_cone: float
@@ -124,8 +139,8 @@ class DeflectorPattern:
     def args(self) -> tuple:
         """The attributes in the order the compiled functions of this module and of
         :mod:`vlsforest.sim.pulses` take them."""
-        return (self.kind, self.prf, self.freq, self.a, self.b, self.window, self.sin_cone, self.cos_cone,
-                self.az_r, self.el_r, self.el_deg)
+        return (self.kind, self.prf, self.freq, self.a, self.b, self.first, self.period, self.window, self.sin_cone,
+                self.cos_cone, self.az_r, self.el_r, self.el_deg)
 
 
 def tls_grid(grid: TlsGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -172,11 +187,11 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
     none = np.zeros(0)
     az_r = el_r = el_deg = none
     freq = float(d.scan_freq_hz)
-    if kind == POLYGON:
-        a, b = -d.max_scan_angle_deg, 2.0 * d.max_scan_angle_deg
-        window = emission_half_angle_deg(s) * (1 + 1e-12)
-    elif kind == ROTATING:
-        a, b = -180.0, 360.0
+    first = period = 0
+    if kind in (POLYGON, ROTATING):
+        half = d.max_scan_angle_deg if kind == POLYGON else 180.0
+        a = -half
+        b, first, period = helios_line_slots(half, freq, float(s.emitter.prf_hz))
         window = emission_half_angle_deg(s) * (1 + 1e-12)
     elif kind == OSCILLATING:
         a, b = d.scan_angle_deg, 2.0 * d.scan_angle_deg
@@ -187,18 +202,71 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
         az, el = tls_grid(s.tls)
         az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
         freq = 0.0
-    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), float(window), sin_cone,
-                            cos_cone, az_r, el_r, el_deg)
+    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), int(first), int(period),
+                            float(window), sin_cone, cos_cone, az_r, el_r, el_deg)
+
+
+def helios_line_slots(half_deg: float, freq: float, prf: float) -> tuple[float, int, int]:
+    """The line structure of a polygon or rotating mirror as HELIOS++ 1.0.8 steps it.
+
+    HELIOS++'s ``PolygonMirrorBeamDeflector`` starts a leg at the angle 0, adds
+    ``(freq · 2M) / prf`` radians before each pulse (M the half sweep, ``degrees · (π/180)``)
+    and, once the sum reaches +M, sets it to −M. The sum is repeated here in the same float64
+    operations, so the slots per line are HELIOS++'s.
+
+    Parameters
+    ----------
+    half_deg : float
+        The mirror's half sweep M, degrees (polygon: ``max_scan_angle_deg``; rotating: 180).
+    freq, prf : float
+        Lines per second and pulses per second.
+
+    Returns
+    -------
+    step_deg : float
+        The angle step per slot, degrees.
+    first : int
+        The slots of a leg's first line: from the slot after nadir up to the last angle below
+        +M.
+    period : int
+        The slots of every later line: from −M up to the last angle below +M.
+
+    Raises
+    ------
+    ConfigError
+        A half sweep, line frequency or PRF that is not positive, or more than 10⁹ slots per line.
+    """
+    if not (half_deg > 0 and freq > 0 and prf > 0) or prf / freq > 1e9:
+        raise ConfigError(f"scanner deflector: half sweep {half_deg}°, {freq} lines/s and a PRF of {prf} Hz give no "
+                          "scan line")
+    m = half_deg * (math.pi / 180.0)
+    step = (freq * (m - (-m))) / prf
+    return math.degrees(step), _slots_below(0.0, step, m), _slots_below(-m, step, m) + 1
+
+
+@numba.njit(cache=True)
+def _slots_below(start, step, top):
+    """How many times ``step`` can be added to ``start`` (in float64, one addition at a time)
+    with the sum staying below ``top``."""
+    n = 0
+    x = start + step
+    while x < top:
+        n += 1
+        x += step
+    return n
 
 
 # --------------------------------------------------------------------------- per-slot functions
 
 
 @numba.njit(cache=True, inline="always")
-def sweep(kind, k, prf, freq, a, b):
+def sweep(kind, k, prf, freq, a, b, first, period):
     """Scan line, phase, sweep angle and sweep direction of slot ``k`` (not tls).
 
-    The line is ``floor(k·freq / prf)`` and the phase in [0, 1) what remains: exact for
+    Polygon and rotating: line 0 holds the slots ``[0, first)`` at the angles ``(k+1)·b``,
+    line ``L ≥ 1`` the slots ``[first + (L−1)·period, first + L·period)`` at ``a + j·b``
+    (``j`` the slot's place in its line); the phase is ``j / period``. Oscillating and conic:
+    the line is ``floor(k·freq / prf)`` and the phase in [0, 1) what remains: exact for
     integer-valued frequencies (``k·freq`` and ``line·prf`` are exact in float64), so that line
     boundaries fall on the right slots.
 
@@ -213,6 +281,12 @@ def sweep(kind, k, prf, freq, a, b):
     back : bool
         An odd line of an oscillating deflector (sweeping right → left).
     """
+    if kind == POLYGON or kind == ROTATING:
+        if k < first:
+            return 0.0, (k + 1.0) / period, (k + 1.0) * b, False
+        q = k - first
+        j = q % period
+        return np.float64(1 + q // period), j / period, a + j * b, False
     x = np.float64(k) * freq
     line = np.floor(x / prf)
     frac = (x - line * prf) / prf
@@ -270,7 +344,7 @@ def node_frame(k, az_r, el_r, el_deg):
 
 
 @numba.njit(cache=True)
-def _deflect(k, kind, prf, freq, a, b, window, sin_cone, cos_cone, az_r, el_r, el_deg):
+def _deflect(k, kind, prf, freq, a, b, first, period, window, sin_cone, cos_cone, az_r, el_r, el_deg):
     n = k.shape[0]
     emitted = np.zeros(n, np.bool_)
     direction = np.empty((n, 3))
@@ -281,7 +355,7 @@ def _deflect(k, kind, prf, freq, a, b, window, sin_cone, cos_cone, az_r, el_r, e
         if kind == TLS:
             v0, v1, v2, w0, w1, w2, ang = node_frame(k[i], az_r, el_r, el_deg)
         else:
-            _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b)
+            _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b, first, period)
             if not abs(ang) <= window:
                 continue
             if kind == CONIC:

@@ -249,7 +249,7 @@ def _may_meet(k, seg, r, p0, vel, rot, prf, lo, hi, tan_off):
 
 
 @numba.njit(cache=True)
-def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, lo, hi, tan_off):
+def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, first, period, lo, hi, tan_off):
     """The across-track beam angles of one scan line that can pass :func:`_may_meet`.
 
     Bounds, for every slot of line ``line`` of segment ``seg`` at once, the condition that
@@ -266,7 +266,10 @@ def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, lo, hi, tan_off):
         2: only angles with ``|r − φ|`` (wrapped to ±π) ≤ ``beta``.
     phi, beta : float
     """
-    if freq > 0.0:
+    if period > 0:  # polygon, rotating: the lines of :func:`~vlsforest.sim.deflector.sweep`
+        k_lo = 0.0 if line == 0 else first + (line - 1.0) * period - 1.0
+        k_hi = min(np.float64(n_k), (first if line == 0 else first + line * period) + 1.0)
+    elif freq > 0.0:
         k_lo = max(0.0, np.floor(line * prf / freq) - 1.0)
         k_hi = min(np.float64(n_k), np.ceil((line + 1.0) * prf / freq) + 1.0)
     else:
@@ -301,8 +304,8 @@ def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, lo, hi, tan_off):
 
 
 @numba.njit(cache=True)
-def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, window, sin_cone,
-          cos_cone, az_r, el_r, el_deg):
+def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, first, period, window,
+          sin_cone, cos_cone, az_r, el_r, el_deg):
     """The pulses of the slots ``[start, stop)`` on the nominal trajectory, slot by slot.
 
     ``mode`` says which emitted pulses get a frame: every one (``_EVERY``), those whose cone
@@ -339,7 +342,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
         k = sl - offsets[seg]
         if mode == _NONE:
             if kind != TLS:
-                _, _, angle, _ = sweep(kind, k, prf, freq, a, b)
+                _, _, angle, _ = sweep(kind, k, prf, freq, a, b, first, period)
                 if not abs(angle) <= window:
                     continue
             slot[ne] = sl
@@ -348,7 +351,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
         if kind == TLS:
             v0, v1, v2, w0, w1, w2, angle = node_frame(k, az_r, el_r, el_deg)
         else:
-            line, frac, angle, back = sweep(kind, k, prf, freq, a, b)
+            line, frac, angle, back = sweep(kind, k, prf, freq, a, b, first, period)
             if not abs(angle) <= window:
                 continue
             if kind == CONIC:
@@ -359,7 +362,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
                     if seg != w_seg or line != w_line:
                         w_seg, w_line = seg, line
                         w_mode, w_phi, w_beta = _line_window(seg, line, offsets[seg + 1] - offsets[seg], p0, vel,
-                                                             rot, prf, freq, lo, hi, tan_off)
+                                                             rot, prf, freq, first, period, lo, hi, tan_off)
                     if w_mode != 1:
                         off = r - w_phi
                         if off > np.pi:
