@@ -10,7 +10,8 @@ the benchmark's ``main``, shows its output as usual and appends one row to
 - ``results``: the values the benchmark passed to :func:`record` (seconds, rates, peak memory …);
 - ``output``: the lines it printed.
 
-A run that ends with exit code 2 (a usage error: bad arguments, missing input) appends no row.
+A run that ends with exit code 2 (a usage error: bad arguments, missing input) appends no row,
+nor does a run asked for its help (``-h``/``--help``): neither measured anything.
 
 Standard library only, so that it adds nothing to what a benchmark imports.
 """
@@ -114,7 +115,7 @@ def run(name: str, main, argv: list[str] | None = None, results_dir: Path | str 
     -------
     int
         The benchmark's exit code (a ``SystemExit`` it raised counts as its code); with
-        :data:`USAGE_ERROR` no row is appended.
+        :data:`USAGE_ERROR`, or ``-h``/``--help`` among the arguments, no row is appended.
     """
     argv = sys.argv[1:] if argv is None else list(argv)
     folder = Path(results_dir or os.environ.get("VLSFOREST_BENCH_RESULTS") or RESULTS_DIR)
@@ -139,6 +140,8 @@ def run(name: str, main, argv: list[str] | None = None, results_dir: Path | str 
                output=tee.copy.getvalue().splitlines())
     if row["exit_code"] == USAGE_ERROR:
         return USAGE_ERROR
+    if {"-h", "--help"} & set(argv):
+        return row["exit_code"]
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.jsonl"
     with path.open("a") as fh:

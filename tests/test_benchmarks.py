@@ -54,6 +54,25 @@ def test_a_run_appends_one_row_with_its_provenance_and_results(tmp_path):
     assert rows[1]["results"] == {} and rows[1]["output"] == []
 
 
+def test_help_and_usage_errors_append_no_row(tmp_path):
+    import argparse
+
+    br = _benchresult()
+
+    def main(argv):
+        ap = argparse.ArgumentParser()
+        ap.add_argument("--n", type=int)
+        ap.parse_args(argv)
+        br.record(n=1)
+        return 0
+
+    assert br.run("bench_toy", main, ["--help"], results_dir=tmp_path) == 0
+    assert br.run("bench_toy", main, ["--n", "x"], results_dir=tmp_path) == 2
+    assert not (tmp_path / "bench_toy.jsonl").exists()
+    assert br.run("bench_toy", main, ["--n", "3"], results_dir=tmp_path) == 0
+    assert len((tmp_path / "bench_toy.jsonl").read_text().splitlines()) == 1
+
+
 def test_a_benchmark_that_exits_keeps_its_code(tmp_path):
     br = _benchresult()
 

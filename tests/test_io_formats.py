@@ -553,3 +553,32 @@ def test_read_csv_table_errors_are_one_line_naming_the_file(tmp_path, content, n
         read_csv_table(path, "tree table", ("tree_id", "x"))
     msg = str(err.value)
     assert msg.startswith(str(path)) and needle in msg and "\n" not in msg
+
+
+def test_read_height_table_types_ids_and_heights(tmp_path):
+    from vlsforest.io.csvfile import read_height_table
+
+    path = tmp_path / "g.csv"
+    path.write_text("target_id,group,z\n301,conifer,299.5\n302.0,broadleaf,280\n")
+    df = read_height_table(path, "targets table", ids=("target_id",), columns=("group",))
+    assert df["target_id"].tolist() == [301, 302] and df["target_id"].dtype == np.int64
+    assert df["z"].tolist() == [299.5, 280.0] and df["group"].tolist() == ["conifer", "broadleaf"]
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("target_id\n301\n", "g.csv: ground table lacks column(s) ['z']"),
+    ("target_id,z\n301,nan\n", "column 'z' that are not finite numbers"),
+    ("target_id,z\n301,high\n", "column 'z' that are not finite numbers"),
+    ("target_id,z\n301,inf\n", "column 'z' that are not finite numbers"),
+    ("target_id,z\n301.5,1\n", "ids in column 'target_id' that are not integers"),
+    ("target_id,z\nP1,1\n", "ids in column 'target_id' that are not integers"),
+])
+def test_read_height_table_errors_name_the_column(tmp_path, content, needle):
+    from vlsforest.io.csvfile import read_height_table
+
+    path = tmp_path / "g.csv"
+    path.write_text(content)
+    with pytest.raises(InputDataError) as err:
+        read_height_table(path, "ground table", ids=("target_id",))
+    msg = str(err.value)
+    assert msg.startswith(str(path)) and needle in msg and "\n" not in msg

@@ -68,15 +68,9 @@ def add_metric_options(p: argparse.ArgumentParser) -> None:
 
 def ground_table(path: Path, key: str) -> dict:
     """Per-tree terrain heights ``{tree id: z}`` from a CSV with columns ``key`` and ``z``."""
-    import pandas as pd
+    from vlsforest.io.csvfile import read_height_table
 
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such ground table")
-    gt = pd.read_csv(path)
-    if not {key, "z"} <= set(gt.columns):
-        raise InputDataError(f"{path}: needs columns {key!r} and 'z'")
-    if not gt["z"].map(math.isfinite).all():
-        raise InputDataError(f"{path}: non-finite ground heights")
+    gt = read_height_table(path, "ground table", ids=(key,))
     return {int(k): float(z) for k, z in zip(gt[key], gt["z"])}
 
 

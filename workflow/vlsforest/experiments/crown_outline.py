@@ -131,11 +131,11 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
             sims = {m: read_las(method_files(plot, entry, m, "trees", sc, option), require=("tree_id",),
                                 allow_empty=True) for m in methods}
             for t in trees:
-                r_xyz, _ = cloud_points(ref, t.target_id)
+                r_xyz = cloud_points(ref, t.target_id)
                 cbh_ref = _cbh(r_xyz, t.ground_z)
                 cpa_ref = crown_projection_area(r_xyz, cbh_ref, ground_z=t.ground_z) if len(r_xyz) else math.nan
                 for m in methods:
-                    s_xyz, _ = cloud_points(sims[m], t.target_id)
+                    s_xyz = cloud_points(sims[m], t.target_id)
                     own = models[m].subset(models[m].owner == t.segment_id)
                     ok = len(r_xyz) > 0 and len(s_xyz) > 0
                     cbh_sim = _cbh(s_xyz, t.ground_z)

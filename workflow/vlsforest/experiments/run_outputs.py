@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlsforest.errors import ConfigError
-from vlsforest.io.csvfile import read_csv_table
+from vlsforest.io.csvfile import read_height_table
 
 __all__ = ["Target", "plot_files", "targets", "method_files", "cloud_points", "mean_se"]
 
@@ -60,10 +60,7 @@ def plot_files(manifest, option: str = "manifest") -> dict:
 
 def targets(plot: str, entry: Mapping) -> list[Target]:
     """The plot's target trees from its ``targets`` table (in its row order)."""
-    path = entry["targets"]
-    t = read_csv_table(path, "targets table", ("target_id", "tree_id", "group", "z"))
-    if not np.isfinite(t["z"].to_numpy(np.float64)).all():
-        raise ConfigError(f"{path}: non-finite ground heights in column 'z'")
+    t = read_height_table(entry["targets"], "targets table", ids=("target_id", "tree_id"), columns=("group",))
     return [Target(plot, int(r.target_id), int(r.tree_id), str(r.group), float(r.z)) for r in t.itertuples()]
 
 
@@ -86,10 +83,9 @@ def method_files(plot: str, entry: Mapping, method: str, kind: str, scenario: st
     return value
 
 
-def cloud_points(cloud, target_id: int) -> tuple[np.ndarray, np.ndarray]:
-    """A tree's points (n, 3) in a labelled tree cloud and the boolean mask that selects them."""
-    sel = np.asarray(cloud.attrs["tree_id"]).astype(np.int64) == int(target_id)
-    return cloud.xyz[sel], sel
+def cloud_points(cloud, target_id: int) -> np.ndarray:
+    """A tree's points (n, 3) in a labelled tree cloud."""
+    return cloud.xyz[np.asarray(cloud.attrs["tree_id"]).astype(np.int64) == int(target_id)]
 
 
 def mean_se(values) -> dict:

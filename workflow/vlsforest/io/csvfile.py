@@ -2,7 +2,9 @@
 
 :func:`read_csv_table` reads a CSV file that a command or a scene part names: a missing file, a
 file pandas cannot parse and a table without the columns the caller needs each end in one
-:class:`~vlsforest.errors.InputDataError` naming the file. pandas is imported at the first call.
+:class:`~vlsforest.errors.InputDataError` naming the file. :func:`read_height_table` also
+checks a table of trees and their ground heights (a ground table, a plot's targets). pandas is
+imported at the first call.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from pathlib import Path
 
 from vlsforest.errors import InputDataError
 
-__all__ = ["read_csv_table"]
+__all__ = ["read_csv_table", "read_height_table"]
 
 
 def read_csv_table(path, what: str = "CSV file", columns=()):
@@ -50,4 +52,46 @@ def read_csv_table(path, what: str = "CSV file", columns=()):
     missing = set(columns) - set(df.columns)
     if missing:
         raise InputDataError(f"{path}: {what} lacks column(s) {sorted(missing)}")
+    return df
+
+
+def read_height_table(path, what: str, ids=(), columns=()):
+    """Read a table of trees with their ground height ``z`` (a ground table, a plot's targets).
+
+    Parameters
+    ----------
+    path : path
+        The file.
+    what : str
+        What the file is, for the messages.
+    ids : iterable of str
+        Columns of integer ids the table must have.
+    columns : iterable of str
+        Further columns it must have.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The table, with ``z`` as float64 and each of ``ids`` as int64.
+
+    Raises
+    ------
+    InputDataError
+        As :func:`read_csv_table`, and when a ``z`` is not a finite number or an id not an
+        integer (naming the column).
+    """
+    import numpy as np
+    import pandas as pd
+
+    ids = tuple(ids)
+    df = read_csv_table(path, what, (*ids, *columns, "z"))
+    z = pd.to_numeric(df["z"], errors="coerce").to_numpy(np.float64)
+    if not np.isfinite(z).all():
+        raise InputDataError(f"{path}: {what} has ground heights in column 'z' that are not finite numbers")
+    df["z"] = z
+    for col in ids:
+        v = pd.to_numeric(df[col], errors="coerce").to_numpy(np.float64)
+        if not (np.isfinite(v).all() and (v == np.round(v)).all()):
+            raise InputDataError(f"{path}: {what} has ids in column {col!r} that are not integers")
+        df[col] = v.astype(np.int64)
     return df
