@@ -247,6 +247,34 @@ def test_crown_outline_splits_the_cpa_error(tmp_path):
     assert s["base"]["mean"] == pytest.approx(9.0 - seen)
     assert s["error"]["mean"] == pytest.approx(5.0)
     assert s["outline"]["mean"] + s["unseen"]["mean"] + s["base"]["mean"] == pytest.approx(s["error"]["mean"])
+    # the model's own crown starts in the slice of its lowest cubes' bottom (2.5 m): 2.55 m
+    assert row["cbh_model"] == pytest.approx(2.55)
+    c = s["cbh"]
+    assert c["own_base"]["mean"] == pytest.approx(2.55 - row["cbh_ref"])
+    assert c["seen_base"]["mean"] == pytest.approx(row["cbh_sim"] - 2.55)
+    assert c["own_base"]["mean"] + c["seen_base"]["mean"] == pytest.approx(c["error"]["mean"])
+    assert c["error"]["mean"] == pytest.approx(row["cbh_sim"] - row["cbh_ref"])
+
+
+def test_model_crown_base_is_the_first_wide_slice_of_the_cubes():
+    from vlsforest.experiments.crown_outline import model_crown_base
+    from vlsforest.io.voxel_model import VoxelModel
+
+    ground = 100.0
+    base = int(round(ground / 0.5))
+    # a 0.5 m stem column from 0 to 5 m, a 2 × 2 m crown of 0.5 m cells from 5 to 8 m
+    stem = [[0, 0, k] for k in range(10)]
+    crown = [[i, j, k] for i in range(-2, 2) for j in range(-2, 2) for k in range(10, 16)]
+    ijk = np.array(stem + crown) + [0, 0, base]
+    model = VoxelModel(0.5, ijk, np.ones(len(ijk), int))
+    assert model_crown_base(model, ground) == pytest.approx(5.05)
+    # 0.2 m cubes centred in their cells: the crown's lowest cubes span 5.15–5.35 m, so the first
+    # slice they widen is 5.1–5.2 m
+    small = VoxelModel(0.5, ijk, np.ones(len(ijk), int), half=np.full(len(ijk), 0.1))
+    assert model_crown_base(small, ground) == pytest.approx(5.15)
+    # no slice wider than 1.5 m: the paper's rule gives 0
+    assert model_crown_base(VoxelModel(0.5, np.array(stem) + [0, 0, base], np.ones(10, int)), ground) == 0.0
+    assert np.isnan(model_crown_base(VoxelModel(0.5, np.zeros((0, 3)), []), ground))
 
 
 def test_line_fit_matches_scipy():

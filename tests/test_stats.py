@@ -680,6 +680,22 @@ def test_t5_accuracy_order_from_the_crown_outline():
     f, _ = _findings(m, vc, tt, experiments=rows({"fixed_0.05": -6.0, "fixed_0.10": -12.0, "fixed_0.02": 1.0}))
     assert "not established: the CPA order does not follow" in f["T5:0.02 m fixed"]["cause"]
 
+    # the CBH part: the models' own crown bases, ranked as the CBH MAEs of the run rank or against them
+    fine = sorted(["fixed_0.05", "fixed_0.02"], key=lambda me: t5.set_index("method").loc[me, "cbh_mae_m"])
+
+    def with_bases(offsets):
+        exp = rows({"fixed_0.05": -6.0, "fixed_0.10": -12.0, "fixed_0.02": 13.0})
+        for r in exp["crown_outline"]["trees"]:
+            r.update(cbh_ref=4.0, cbh_model=4.0 + offsets.get(r["method"], 0.0))
+        return exp
+
+    f, _ = _findings(m, vc, tt, experiments=with_bases({fine[0]: 0.2, fine[1]: -0.9}))
+    row = f["T5:0.02 m fixed"]
+    assert "CBH: the models' own crown bases set the order" in row["cause"] and "CBH: not tested" not in row["cause"]
+    assert f"reference CBH| {fine[0]} 0.20 m, {fine[1]} 0.90 m; CBH MAE {fine[0]}" in row["experiment"]
+    f, _ = _findings(m, vc, tt, experiments=with_bases({fine[0]: 0.9, fine[1]: 0.2}))
+    assert "CBH: not established: the CBH order does not follow" in f["T5:0.02 m fixed"]["cause"]
+
 
 def test_f6_cause_from_the_shift_room():
     m, vc, tt = study_like()

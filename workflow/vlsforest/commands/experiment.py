@@ -10,7 +10,8 @@ with detector variants and writes the target trees' multiple-return shares
 (:func:`vlsforest.experiments.recording_detector.run_recording_detector`).
 ``vlsforest experiment crown-outline --inputs-json JSON --methods fixed_0.25 … --scenarios als uls
 -o crown_outline.json`` splits each method's CPA error on a finished run into the model's own
-outline, the part the simulation does not see and the crown base
+outline, the part the simulation does not see and the crown base, and its CBH error into the
+model's own crown base and the part the simulation sees of it
 (:func:`vlsforest.experiments.crown_outline.run_crown_outline`).
 ``vlsforest experiment shift-room --inputs-json JSON --base scaled --shifted scaled_random_shift
 --scenarios als uls -o shift_room.json`` relates each target tree's cube size to what the random
@@ -61,9 +62,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     _result_file(r)
     inputs_help = ("the run's files by plot: targets, reference tree clouds, and per method voxels, tree clouds "
                    "and metrics (vlsforest.experiments.run_outputs)")
-    c = sub.add_parser("crown-outline", help="where the voxel models' crown projection area errors come from",
+    c = sub.add_parser("crown-outline", help="where the voxel models' crown projection area and base errors come from",
                        description="Split each method's CPA error on a finished run into the model's own outline, "
-                                   "the part the simulation does not see, and the simulated crown base.")
+                                   "the part the simulation does not see, and the simulated crown base; and its "
+                                   "CBH error into the model's own crown base and the part the simulation sees.")
     c.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
     c.add_argument("--methods", nargs="+", required=True, metavar="METHOD", help="the voxel methods")
     c.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")

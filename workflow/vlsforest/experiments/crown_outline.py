@@ -28,6 +28,16 @@ Their differences add up exactly to the CPA error ``cpa_sim − cpa_ref``:
 * ``base = cpa_sim − cpa_seen``: the simulated crown base's own effect (a CBH above the
   reference's drops the crown below it).
 
+The crown base height (CBH) error ``cbh_sim − cbh_ref`` splits the same way, with
+
+``cbh_model``
+    the CBH of the model itself: the paper's rule (the first 0.1 m slice wider than 1.5 m)
+    applied to the tree's cubes, each cube standing for its whole extent in every slice it
+    reaches (:func:`model_crown_base`);
+
+into ``own_base = cbh_model − cbh_ref`` (where the model's own crown starts against the
+reference's) and ``seen_base = cbh_sim − cbh_model`` (what the simulation sees of it).
+
 Every CPA and CBH is :mod:`vlsforest.metrics`' (``crown_projection_area``, ``tree_metrics``),
 with the target's ground height of the run's targets table, as the run's metrics are.
 """
@@ -42,12 +52,14 @@ from vlsforest.errors import ConfigError
 from vlsforest.experiments.run_outputs import cloud_points, mean_se, method_files, plot_files, targets
 from vlsforest.io.las import read_las
 from vlsforest.io.voxel_model import VoxelModel
-from vlsforest.metrics import crown_projection_area, tree_metrics
+from vlsforest.metrics import CBH_SLICE, crown_projection_area, tree_metrics
 
-__all__ = ["TERMS", "model_outline_area", "run_crown_outline"]
+__all__ = ["CBH_TERMS", "TERMS", "model_crown_base", "model_outline_area", "run_crown_outline"]
 
 #: the parts of the CPA error, in the order they add up to it
 TERMS = ("outline", "unseen", "base")
+#: the parts of the CBH error, in the order they add up to it
+CBH_TERMS = ("own_base", "seen_base")
 
 
 def model_outline_area(model: VoxelModel, cbh: float, ground_z: float) -> float:
@@ -76,6 +88,41 @@ def model_outline_area(model: VoxelModel, cbh: float, ground_z: float) -> float:
     corners = np.concatenate([np.column_stack([c[:, 0] + sx * h, c[:, 1] + sy * h, top])
                               for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)])
     return crown_projection_area(corners, cbh, ground_z=ground_z)
+
+
+def model_crown_base(model: VoxelModel, ground_z: float) -> float:
+    """CBH of a voxel model itself: the paper's rule applied to the solid cubes.
+
+    Each cube contributes the four xy corners of its footprint to every 0.1 m slice (the
+    slices of :func:`vlsforest.metrics.tree_metrics`, counted from ``ground_z``) that its
+    vertical extent reaches; the CBH is then that of :func:`~vlsforest.metrics.tree_metrics`
+    on those points: the centre of the first slice whose xy diameter exceeds 1.5 m.
+
+    Parameters
+    ----------
+    model : VoxelModel
+        One tree's cubes.
+    ground_z : float
+        Terrain height at the stem.
+
+    Returns
+    -------
+    float
+        The CBH above ``ground_z`` (m); NaN for a model without cubes.
+    """
+    if model.n_voxels == 0:
+        return math.nan
+    c = model.centres()
+    h = 0.5 * model.sides()
+    lo = np.floor(np.round((c[:, 2] - h - ground_z) / CBH_SLICE, 9)).astype(np.int64)
+    hi = np.ceil(np.round((c[:, 2] + h - ground_z) / CBH_SLICE, 9)).astype(np.int64) - 1
+    n = np.maximum(hi - lo + 1, 1)
+    cube = np.repeat(np.arange(len(c)), n)
+    k = lo[cube] + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+    z = ground_z + (k + 0.5) * CBH_SLICE
+    pts = np.concatenate([np.column_stack([c[cube, 0] + sx * h[cube], c[cube, 1] + sy * h[cube], z])
+                          for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)])
+    return _cbh(pts, ground_z)
 
 
 def _cbh(xyz, ground_z) -> float:
@@ -123,6 +170,11 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
     for plot, entry in plots.items():
         trees = targets(plot, entry)
         models = {m: VoxelModel.load(method_files(plot, entry, m, "voxels", option=option)) for m in methods}
+        own, own_cbh = {}, {}  # (target, method) → the tree's cubes and their own CBH
+        for t in trees:
+            for m in methods:
+                own[t.target_id, m] = models[m].subset(models[m].owner == t.segment_id)
+                own_cbh[t.target_id, m] = model_crown_base(own[t.target_id, m], t.ground_z)
         for sc in scenarios:
             ref_path = (entry.get("reference") or {}).get(sc)
             if not isinstance(ref_path, str):
@@ -136,13 +188,13 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
                 cpa_ref = crown_projection_area(r_xyz, cbh_ref, ground_z=t.ground_z) if len(r_xyz) else math.nan
                 for m in methods:
                     s_xyz = cloud_points(sims[m], t.target_id)
-                    own = models[m].subset(models[m].owner == t.segment_id)
                     ok = len(r_xyz) > 0 and len(s_xyz) > 0
                     cbh_sim = _cbh(s_xyz, t.ground_z)
                     rows.append({
                         "plot": plot, "tree_id": t.target_id, "group": t.group, "method": m, "scenario": sc,
-                        "cbh_ref": cbh_ref, "cbh_sim": cbh_sim, "cpa_ref": cpa_ref,
-                        "cpa_model": model_outline_area(own, cbh_ref, t.ground_z) if ok else math.nan,
+                        "cbh_ref": cbh_ref, "cbh_sim": cbh_sim,
+                        "cbh_model": own_cbh[(t.target_id, m)] if ok else math.nan, "cpa_ref": cpa_ref,
+                        "cpa_model": model_outline_area(own[(t.target_id, m)], cbh_ref, t.ground_z) if ok else math.nan,
                         "cpa_seen": crown_projection_area(s_xyz, cbh_ref, ground_z=t.ground_z) if ok else math.nan,
                         "cpa_sim": crown_projection_area(s_xyz, cbh_sim, ground_z=t.ground_z) if ok else math.nan,
                     })
@@ -161,9 +213,15 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
             }
             summary[m][sc] = {k: mean_se(v) for k, v in parts.items()}
             summary[m][sc]["cbh_error_m"] = mean_se([r["cbh_sim"] - r["cbh_ref"] for r in rs])["mean"]
+            summary[m][sc]["cbh"] = {
+                "error": mean_se([r["cbh_sim"] - r["cbh_ref"] for r in rs]),
+                "own_base": mean_se([r["cbh_model"] - r["cbh_ref"] for r in rs]),
+                "seen_base": mean_se([r["cbh_sim"] - r["cbh_model"] for r in rs]),
+            }
             summary[m][sc]["reference_m2"] = mean_se([r["cpa_ref"] for r in rs])["mean"]
     return {"experiment": "crown_outline", "methods": methods, "scenarios": scenarios, "plots": list(plots),
             "method": ("per target tree: the reference's CPA at its CBH, the model's own outline (its cubes' "
                        "corners above the reference's crown base), the simulated cloud's CPA at the reference's "
-                       "and at its own crown base; error = outline + unseen + base"),
+                       "and at its own crown base; error = outline + unseen + base; the CBH of the model's own "
+                       "cubes; CBH error = own_base + seen_base"),
             "summary": summary, "trees": rows}

@@ -693,30 +693,54 @@ def _accuracy_outline_cause(result, t5, methods) -> tuple[str, str]:
 
     The CPA part of the accuracy follows the models' own outlines where the order of their mean
     absolute outline error (model outline − reference CPA, per tree) over ``methods`` is the order
-    of their CPA MAE; the CBH part is not tested by the experiment.
+    of their CPA MAE; the CBH part follows the models' own crown bases where the order of their
+    mean absolute own-base error (the model's own CBH − the reference's, per tree) is the order of
+    their CBH MAE.
     """
     if not result:
         return _outline_untested()
     trees = result.get("trees", [])
-    outline = {}
-    for m in methods:
-        v = [abs(r["cpa_model"] - r["cpa_ref"]) for r in trees if r["method"] == m]
-        v = [x for x in v if np.isfinite(x)]
-        if v:
-            outline[m] = float(np.mean(v))
-    have = [m for m in methods if m in outline and np.isfinite(t5.loc[m, "cpa_mae_m2"])]
-    if len(have) < 2:
+    cpa = _order_by_own(trees, t5, methods, "cpa_model", "cpa_ref", "cpa_mae_m2")
+    if cpa is None:
         return ("not established: the experiment has no outline for these methods",
                 _outline_heading(result) + "no outline of " + ", ".join(methods))
-    by_mae = sorted(have, key=lambda m: t5.loc[m, "cpa_mae_m2"])
-    by_outline = sorted(have, key=lambda m: outline[m])
+    same, own, mae = cpa
     exp = (_outline_heading(result) + "mean |own outline − reference CPA| "
-           + ", ".join(f"{m} {outline[m]:.1f} m²" for m in by_outline)
-           + "; CPA MAE " + ", ".join(f"{m} {t5.loc[m, 'cpa_mae_m2']:.1f} m²" for m in by_mae))
-    if by_mae == by_outline:
-        return ("CPA: the models' own crown outlines set the order (each model's CPA error ranks as far as its "
-                "own outline lies from the reference's); CBH: not tested", exp)
-    return "not established: the CPA order does not follow the models' own outlines; CBH: not tested", exp
+           + ", ".join(f"{m} {v:.1f} m²" for m, v in own) + "; CPA MAE "
+           + ", ".join(f"{m} {v:.1f} m²" for m, v in mae))
+    cause = ("CPA: the models' own crown outlines set the order (each model's CPA error ranks as far as its own "
+             "outline lies from the reference's)" if same
+             else "not established: the CPA order does not follow the models' own outlines")
+    cbh = _order_by_own(trees, t5, methods, "cbh_model", "cbh_ref", "cbh_mae_m")
+    if cbh is None:
+        return cause + "; CBH: not tested", exp
+    same, own, mae = cbh
+    exp += ("; mean |own crown base − reference CBH| " + ", ".join(f"{m} {v:.2f} m" for m, v in own)
+            + "; CBH MAE " + ", ".join(f"{m} {v:.2f} m" for m, v in mae))
+    cause += ("; CBH: the models' own crown bases set the order (each model's CBH error ranks as far as its own "
+              "crown base lies from the reference's)" if same
+              else "; CBH: not established: the CBH order does not follow the models' own crown bases")
+    return cause, exp
+
+
+def _order_by_own(trees, t5, methods, own_key, ref_key, mae_col):
+    """Whether ``methods`` rank by their mean |own − reference| (per tree) as by ``t5[mae_col]``.
+
+    Returns ``(same order, [(method, mean |own − ref|)] ascending, [(method, MAE)] ascending)``,
+    or None when fewer than two methods have both.
+    """
+    own = {}
+    for m in methods:
+        v = [abs(r[own_key] - r[ref_key]) for r in trees if r["method"] == m and own_key in r]
+        v = [x for x in v if np.isfinite(x)]
+        if v:
+            own[m] = float(np.mean(v))
+    have = [m for m in methods if m in own and np.isfinite(t5.loc[m, mae_col])]
+    if len(have) < 2:
+        return None
+    by_mae = sorted(have, key=lambda m: t5.loc[m, mae_col])
+    by_own = sorted(have, key=lambda m: own[m])
+    return by_mae == by_own, [(m, own[m]) for m in by_own], [(m, float(t5.loc[m, mae_col])) for m in by_mae]
 
 
 def _shift_room_cause(result, missing) -> tuple[str, str]:
