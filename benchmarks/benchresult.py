@@ -11,7 +11,8 @@ the benchmark's ``main``, shows its output as usual and appends one row to
 - ``output``: the lines it printed.
 
 A run that ends with exit code 2 (a usage error: bad arguments, missing input) appends no row,
-nor does a run asked for its help (``-h``/``--help``): neither measured anything.
+nor does a run that only printed its help (``-h``, ``--help`` or an abbreviation of it):
+neither measured anything.
 
 Standard library only, so that it adds nothing to what a benchmark imports.
 """
@@ -140,8 +141,10 @@ def run(name: str, main, argv: list[str] | None = None, results_dir: Path | str 
                output=tee.copy.getvalue().splitlines())
     if row["exit_code"] == USAGE_ERROR:
         return USAGE_ERROR
-    if {"-h", "--help"} & set(argv):
-        return row["exit_code"]
+    asked_help = {"-h", "--help"} & set(argv) or (
+        not results and row["output"][:1] and row["output"][0].startswith("usage:"))
+    if asked_help and row["exit_code"] == 0:
+        return 0
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.jsonl"
     with path.open("a") as fh:

@@ -67,6 +67,7 @@ def test_help_and_usage_errors_append_no_row(tmp_path):
         return 0
 
     assert br.run("bench_toy", main, ["--help"], results_dir=tmp_path) == 0
+    assert br.run("bench_toy", main, ["--hel"], results_dir=tmp_path) == 0
     assert br.run("bench_toy", main, ["--n", "x"], results_dir=tmp_path) == 2
     assert not (tmp_path / "bench_toy.jsonl").exists()
     assert br.run("bench_toy", main, ["--n", "3"], results_dir=tmp_path) == 0

@@ -98,10 +98,12 @@ def test_presets_load_and_validate():
     assert tls.detector.range_noise_m == 0.005
 
 
-def helios_mirror_angles(half_deg, freq, prf, n):
-    """HELIOS++ 1.0.8's PolygonMirrorBeamDeflector (doSimStep) run for ``n`` pulses from a leg's
-    start: the angle starts at 0; before each pulse it grows by (freq · 2M) / prf radians and is
-    set to −M once it reaches +M. Returns the pulses' angles in degrees."""
+def helios_mirror_angles(half_deg, freq, prf, n, window_deg=None):
+    """HELIOS++ 1.0.8's PolygonMirrorBeamDeflector (doSimStep, lastPulseLeftDevice) run for ``n``
+    pulses from a leg's start: the angle starts at 0; before each pulse it grows by
+    (freq · 2M) / prf radians and is set to −M once it reaches +M; a pulse leaves the device when
+    |angle| ≤ the window (radians, no tolerance). Returns the angles in degrees and, with
+    ``window_deg``, whether each pulse is emitted."""
     m = half_deg * (math.pi / 180.0)
     step = (freq * (m - (-m))) / prf
     x, out = 0.0, []
@@ -110,7 +112,10 @@ def helios_mirror_angles(half_deg, freq, prf, n):
         if x >= m:
             x = -m
         out.append(x)
-    return np.degrees(out)
+    rad = np.array(out)
+    if window_deg is None:
+        return np.degrees(rad)
+    return np.degrees(rad), np.abs(rad) <= window_deg * (math.pi / 180.0)
 
 
 def test_vq780i_emits_two_thirds_of_its_prf():
@@ -120,10 +125,10 @@ def test_vq780i_emits_two_thirds_of_its_prf():
     vq = PRESETS["riegl_vq780i"]
     n = 1_000_000
     emitted, _, _, angle = deflect(vq, np.arange(n))
-    ref = helios_mirror_angles(45.0, 250.0, 1e6, n)
+    ref, on = helios_mirror_angles(45.0, 250.0, 1e6, n, 30.0)
     starts = np.flatnonzero(ref == -45.0)
     assert np.all(np.diff(starts) == 4001) and starts[0] == 2000
-    np.testing.assert_array_equal(emitted, np.abs(ref) <= 30.0)
+    np.testing.assert_array_equal(emitted, on)
     np.testing.assert_allclose(angle, ref[emitted], atol=1e-9)
     # every full line: nodes -45 + 0.0225·j within [-30, 30], j = 667 … 3333
     per_line = np.add.reduceat(emitted, starts)[:-1]
@@ -139,14 +144,19 @@ def test_vq780i_emits_two_thirds_of_its_prf():
 
 def test_minivux_steps_as_helios():
     """The rotating mirror at 100 kHz / 50 Hz: HELIOS++'s float sum takes 2,001 slots per turn,
-    and a leg starts at nadir (the first pulse one step right of it)."""
-    ref = helios_mirror_angles(180.0, 50.0, 1e5, 12_000)
+    a leg starts at nadir (the first pulse one step right of it), and the pulses at exactly
+    ±90° (slot 499 of the first turn, 500 of the later ones) leave the device or not as
+    HELIOS++'s rounded sum decides; likewise with a ±45° survey angle."""
+    ref, on = helios_mirror_angles(180.0, 50.0, 1e5, 12_000, 90.0)
     starts = np.flatnonzero(ref == -180.0)
     assert np.all(np.diff(starts) == 2001)
     emitted, _, _, angle = deflect(PRESETS["riegl_minivux1uav"], np.arange(12_000))
-    np.testing.assert_array_equal(emitted, np.abs(ref) <= 90.0 + 1e-9)
+    np.testing.assert_array_equal(emitted, on)
     np.testing.assert_allclose(angle, ref[emitted], atol=1e-9)
     assert angle[0] == pytest.approx(0.18)
+    _, on45 = helios_mirror_angles(180.0, 50.0, 1e5, 12_000, 45.0)
+    sc = survey_from_dict(airborne("riegl_minivux1uav", overrides={"scan_angle_deg": 45.0})).scanner
+    np.testing.assert_array_equal(deflect(sc, np.arange(12_000))[0], on45)
 
 
 def test_datasheet_divergences_are_stored_as_the_half_angle():
@@ -336,11 +346,12 @@ def test_polygon_loses_pulses_beyond_the_survey_angle():
     s = survey_from_dict(airborne(sc))
     b = all_pulses(s)
     assert np.all(np.abs(b.scan_angle_deg) <= 20.0 + 1e-9)
-    # mirror steps 0.8° over [-40, 40): the emitted nodes are -20, -19.2, ..., 20, 51 per line
-    ref = helios_mirror_angles(40.0, 10.0, 1000.0, s.n_slots)
-    assert len(b) == (np.abs(ref) <= 20.0 + 1e-9).sum()
+    # mirror steps 0.8° over [-40, 40): the nodes -19.2 … 19.2 are emitted, and the nodes ±20 on
+    # the window's edge as HELIOS++'s rounded sum decides: 49 to 51 per line
+    ref, on = helios_mirror_angles(40.0, 10.0, 1000.0, s.n_slots, 20.0)
+    np.testing.assert_array_equal(b.slot, np.flatnonzero(on))
     starts = np.flatnonzero(np.isclose(ref, -40.0))
-    assert np.all(np.add.reduceat(np.abs(ref) <= 20.0 + 1e-9, starts)[:-1] == 51)
+    assert np.all(np.isin(np.add.reduceat(on, starts)[:-1], (49, 50, 51)))
     assert len(b) / s.n_slots == pytest.approx(20.0 / 40.0, abs=1.0 / 100 + 1e-12)
 
 
@@ -351,7 +362,7 @@ def test_rotating_window_emits_half_the_slots():
     assert len(b) / s.n_slots == pytest.approx(0.5, rel=0.01)
     assert np.all(np.abs(b.scan_angle_deg) <= 90.0 + 1e-9)
     assert np.all(b.direction[:, 2] <= 1e-12)  # never looks up
-    # per rotation: 2000 slots, angular step 0.18°, nadir included
+    # per rotation: 2,001 slots, angular step 0.18°, nadir included
     steps = np.diff(b.scan_angle_deg)
     assert np.allclose(steps[steps > 0], 0.18)
     # a ±45° survey angle inside the ±90° window: a quarter of the slots
@@ -393,7 +404,9 @@ def _documented_pattern(sc, k):
     mirror = None
     if sc.deflector.kind in ("polygon", "rotating"):
         m = sc.deflector.max_scan_angle_deg if sc.deflector.kind == "polygon" else 180.0
-        mirror = helios_mirror_angles(m, sc.deflector.scan_freq_hz, sc.emitter.prf_hz, int(k.max()) + 1)
+        window = min(sc.deflector.effective_max_scan_angle_deg, sc.deflector.scan_angle_deg)
+        mirror, mirror_on = helios_mirror_angles(m, sc.deflector.scan_freq_hz, sc.emitter.prf_hz, int(k.max()) + 1,
+                                                 window)
     for kk in k.tolist():
         if sc.deflector.kind == "tls":
             n_el = int(round((sc.tls.v_fov_deg[1] - sc.tls.v_fov_deg[0]) / sc.tls.v_step_deg)) + 1
@@ -417,8 +430,7 @@ def _documented_pattern(sc, k):
             t = sc.deflector.scan_angle_deg
             sign = -1.0 if line % 2 else 1.0
             a = sign * (-t + 2 * t * phase)
-        window = min(sc.deflector.effective_max_scan_angle_deg, sc.deflector.scan_angle_deg)
-        if sc.deflector.kind in ("polygon", "rotating") and abs(a) > window + 1e-9:
+        if mirror is not None and not mirror_on[kk]:
             out.append((False, None, None, None))
             continue
         r = math.radians(a)
@@ -444,11 +456,7 @@ def test_deflect_follows_the_documented_patterns(scanner):
         k = np.arange(0, 30_000, 3)
     emitted, direction, scan_dir, angle = deflect(sc, k)
     ref = _documented_pattern(sc, k)
-    # slots at the edge of the emission window (within rounding of the window) are not compared
-    d = sc.deflector
-    sure = np.array([not e or abs(abs(a) - min(d.effective_max_scan_angle_deg, d.scan_angle_deg)) > 1e-6
-                     if d.kind in ("polygon", "rotating") else True for e, _, _, a in ref])
-    assert sure.mean() > 0.99
+    sure = np.ones(len(ref), bool)
     np.testing.assert_array_equal(emitted[sure], np.array([e for e, _, _, _ in ref])[sure])
     rows = np.cumsum(emitted) - 1
     keep = sure & emitted
@@ -510,6 +518,7 @@ def test_pulses_toward_equals_pulses_then_cone_test(kind, noisy):
         d["trajectory_noise"] = {"position_sigma_m": 0.2, "attitude_sigma_deg": 0.05, "correlation_s": 0.7}
     s = survey_from_dict(d)
     boxes = [(np.array([-30.0, 5.0, -2.0]), np.array([10.0, 25.0, 20.0])),  # part of the swath / scene
+             (np.array([-5.0, -1.0, -2.0]), np.array([5.0, 1.0, 2.0])),  # below the leg's first lines
              (np.array([-1e4, -1e4, -1e4]), np.array([1e4, 1e4, 1e4])),  # everything
              (np.array([500.0, 500.0, 0.0]), np.array([510.0, 510.0, 5.0])),  # far away
              (np.array([0.0, 0.0, -np.inf]), np.array([1.0, 1.0, 1.0]))]  # not finite: nothing
@@ -528,7 +537,7 @@ def test_pulses_toward_equals_pulses_then_cone_test(kind, noisy):
                 x, y = getattr(batch, f), getattr(sub, f)
                 assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), f
             n_live.append(len(live))
-    assert sum(n_live[4:8]) == len(s.pulses(0, s.n_slots)) and sum(n_live[12:]) == 0  # all; none
+    assert sum(n_live[8:12]) == len(s.pulses(0, s.n_slots)) and sum(n_live[16:]) == 0  # all; none
 
 
 @pytest.mark.parametrize("kind", ["polygon", "rotating", "oscillating"])
@@ -570,16 +579,17 @@ def test_scan_line_bound_is_tight_for_a_small_far_box():
                                   legs=[{"start": [0, 0, 100], "end": [0, 100, 100]}]))
     m = s.motion
     pattern = deflector_pattern(s.scanner)
-    args = (m.p0, m.vel, m.rot, pattern.prf, pattern.freq, pattern.first, pattern.period)
+    first, period = int(pattern.lines[0]), int(pattern.lines[1])
+    args = (m.p0, m.vel, m.rot, pattern.prf, pattern.freq, first, period)
     n_k = int(m.offsets[1] - m.offsets[0])
     # the line at t ≈ 0.5 s (platform at y ≈ 5 m) and a 2 m box straight below it
-    line = float(sweep(pattern.kind, int(0.5 * pattern.prf), *pattern.args()[1:7])[0])
+    line = float(sweep(pattern.kind, int(0.5 * pattern.prf), *pattern.args()[1:6])[0])
     assert line >= 1
     mode, phi, beta = _line_window(0, line, n_k, *args, np.array([-1.0, 4.0, -1.0]), np.array([1.0, 6.0, 1.0]), 1e-3)
     assert mode == 2
     b = s.pulses(0, s.n_slots)
-    k_lo = pattern.first + (line - 1) * pattern.period
-    in_line = np.flatnonzero((b.slot >= k_lo) & (b.slot < k_lo + pattern.period))
+    k_lo = first + (line - 1) * period
+    in_line = np.flatnonzero((b.slot >= k_lo) & (b.slot < k_lo + period))
     below = in_line[np.argmin(np.abs(b.direction[in_line, 2] + 1))]
     r_below = np.radians(b.scan_angle_deg[below])
     # the window is centred on nadir: the line's beam nearest to it lies within half a step

@@ -548,5 +548,5 @@ def test_extract_sim_metrics_are_those_of_the_written_trees(tmp_path, capsys):
     bad = ["extract", "sim", str(tmp_path / "sim.laz"), "--targets", str(tmp_path / "noz.csv"),
            "-o", str(tmp_path / "u.laz"), "--metrics", str(tmp_path / "u.csv")]
     assert cli_main(bad) == 2
-    assert "ground table lacks column(s) ['z']" in capsys.readouterr().err
+    assert "targets table lacks column(s) ['z']" in capsys.readouterr().err
     assert not (tmp_path / "u.laz").exists() and not (tmp_path / "u.csv").exists()

@@ -85,7 +85,7 @@ def run(args) -> int:
     from vlsforest.io.las import read_las, write_las
 
     targets = _targets(args.targets)
-    ground = ground_table(args.targets, "target_id") if args.metrics is not None else None
+    ground = ground_table(args.targets, "target_id", "targets table") if args.metrics is not None else None
     cloud = read_las(args.cloud, allow_empty=True, require=("object_id",) if args.what == "sim" else ())
     seg_to_target = dict(zip(targets.tree_id.astype(int), targets.target_id.astype(int)))
     if args.what == "reference":

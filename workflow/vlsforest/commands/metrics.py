@@ -66,11 +66,12 @@ def add_metric_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def ground_table(path: Path, key: str) -> dict:
-    """Per-tree terrain heights ``{tree id: z}`` from a CSV with columns ``key`` and ``z``."""
+def ground_table(path: Path, key: str, what: str = "ground table") -> dict:
+    """Per-tree terrain heights ``{tree id: z}`` from a CSV with columns ``key`` and ``z``
+    (``what`` names the file in errors)."""
     from vlsforest.io.csvfile import read_height_table
 
-    gt = read_height_table(path, "ground table", ids=(key,))
+    gt = read_height_table(path, what, ids=(key,))
     return {int(k): float(z) for k, z in zip(gt[key], gt["z"])}
 
 

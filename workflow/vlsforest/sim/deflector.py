@@ -12,18 +12,19 @@ fraction of a line swept per slot, and every flight line starts a new scan line 
     first adds the step ``δ = 2M·f`` and the slot is then emitted at that angle, and when the
     sum reaches +M it is reset to −M (that slot's angle). So slot k of the first line looks at
     ``(k+1)·δ`` and every later line runs ``−M, −M+δ, −M+2δ, …`` up to the last angle below
-    +M; the sum is accumulated in float64 radians, and its rounding decides whether a line holds
-    ``1/f`` or ``1/f + 1`` slots (:func:`helios_line_slots`; for the VQ-780i at 1 MHz / 250 Hz
-    and the miniVUX-1UAV at 100 kHz / 50 Hz one slot more: 4,001 and 2,001). A pulse is emitted
-    only if ``|angle| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``: the RIEGL
-    VQ-780i's mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its
-    PRF. The slots and angles are those of HELIOS++ on the same survey, so that both tools'
-    beams fall on the same spots.
+    +M. The sum is accumulated in float64 radians, so a line holds ``⌈1/f⌉`` slots, or one
+    more when ``1/f`` is whole and the rounded sum stays below +M (:func:`helios_line_slots`;
+    the VQ-780i at 1 MHz / 250 Hz and the miniVUX-1UAV at 100 kHz / 50 Hz: 4,001 and 2,001).
+    A pulse is emitted only if the sum's ``|angle| ≤ min(effective_max_scan_angle_deg,
+    scan_angle_deg)`` (compared in radians, as HELIOS++ compares it): the RIEGL VQ-780i's
+    mirror sweeps ±45° and the device measures within ±30°, so it emits 2/3 of its PRF. The
+    slots, angles and emitted pulses are those of HELIOS++ 1.0.8 on the same survey, so that
+    both tools' beams fall on the same spots.
 ``rotating``
     A 360° mirror turning ``scan_freq_hz`` times a second, stepped as ``polygon`` with M = 180°
-    (a line starts at nadir and turns right → zenith → left → nadir). Emitted only if
-    ``|angle| ≤ min(effective_max_scan_angle_deg, scan_angle_deg)``; with the ±90° survey
-    window of the miniVUX-1UAV about half of the slots are emitted.
+    (a leg's first line turns from nadir to the right up to the zenith, every later line from
+    the zenith over the left, nadir and the right back to it). Emitted as ``polygon``; with the
+    ±90° survey window of the miniVUX-1UAV about half of the slots are emitted.
 ``oscillating``
     Triangle wave between ±scan_angle_deg, ``PRF/scan_freq`` slots per line (one line = one
     sweep from one side to the other; even lines sweep left → right, odd lines back). The
@@ -109,11 +110,13 @@ class DeflectorPattern:
         Polygon and rotating: the angle ``a = −M`` a line after the first starts at and the
         step ``b = δ`` per slot (degrees); oscillating sweeps ``−a + b·phase`` on even lines and
         ``a − b·phase`` on odd ones; 0 for conic and tls.
-    first, period : int
-        Polygon and rotating: the slots of the first line and of every later one
-        (:func:`helios_line_slots`); 0 for the other patterns.
+    lines : ndarray of int64, shape (6,)
+        Polygon and rotating: the slots of the first line and of every later one, and the
+        emitted ones of each, ``[first, period, first_on, first_off, on, off]``
+        (:func:`helios_line_slots`); zeros for the other patterns.
     window : float
-        A slot is emitted when ``|angle| <= window`` (inf: every slot).
+        An oscillating or conic slot is emitted when ``|angle| <= window`` (inf: every slot;
+        polygon and rotating: inf, their emitted slots are ``lines``').
     sin_cone, cos_cone : float
         Sine and cosine of the conic half angle (0 and 1 for the other patterns).
     az_r, el_r : ndarray
@@ -127,8 +130,7 @@ class DeflectorPattern:
     freq: float
     a: float
     b: float
-    first: int
-    period: int
+    lines: np.ndarray
     window: float
     sin_cone: float
     cos_cone: float
@@ -139,7 +141,7 @@ class DeflectorPattern:
     def args(self) -> tuple:
         """The attributes in the order the compiled functions of this module and of
         :mod:`vlsforest.sim.pulses` take them."""
-        return (self.kind, self.prf, self.freq, self.a, self.b, self.first, self.period, self.window, self.sin_cone,
+        return (self.kind, self.prf, self.freq, self.a, self.b, self.lines, self.window, self.sin_cone,
                 self.cos_cone, self.az_r, self.el_r, self.el_deg)
 
 
@@ -187,12 +189,11 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
     none = np.zeros(0)
     az_r = el_r = el_deg = none
     freq = float(d.scan_freq_hz)
-    first = period = 0
+    lines = np.zeros(6, np.int64)
     if kind in (POLYGON, ROTATING):
         half = d.max_scan_angle_deg if kind == POLYGON else 180.0
         a = -half
-        b, first, period = helios_line_slots(half, freq, float(s.emitter.prf_hz))
-        window = emission_half_angle_deg(s) * (1 + 1e-12)
+        b, lines = helios_line_slots(half, freq, float(s.emitter.prf_hz), emission_half_angle_deg(s))
     elif kind == OSCILLATING:
         a, b = d.scan_angle_deg, 2.0 * d.scan_angle_deg
     elif kind == CONIC:
@@ -202,17 +203,19 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
         az, el = tls_grid(s.tls)
         az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
         freq = 0.0
-    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), int(first), int(period),
-                            float(window), sin_cone, cos_cone, az_r, el_r, el_deg)
+    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), lines, float(window), sin_cone,
+                            cos_cone, az_r, el_r, el_deg)
 
 
-def helios_line_slots(half_deg: float, freq: float, prf: float) -> tuple[float, int, int]:
-    """The line structure of a polygon or rotating mirror as HELIOS++ 1.0.8 steps it.
+def helios_line_slots(half_deg: float, freq: float, prf: float, window_deg: float) -> tuple[float, np.ndarray]:
+    """The lines of a polygon or rotating mirror and their emitted slots, as HELIOS++ 1.0.8 steps them.
 
     HELIOS++'s ``PolygonMirrorBeamDeflector`` starts a leg at the angle 0, adds
     ``(freq · 2M) / prf`` radians before each pulse (M the half sweep, ``degrees · (π/180)``)
-    and, once the sum reaches +M, sets it to −M. The sum is repeated here in the same float64
-    operations, so the slots per line are HELIOS++'s.
+    and, once the sum reaches +M, sets it to −M; a pulse leaves the device when the sum's
+    absolute value is at most the window (in radians). The sum is repeated here in the same
+    float64 operations, so the slots per line and the emitted ones are HELIOS++'s. Within a line
+    the angle only grows, so each line's emitted slots are one run.
 
     Parameters
     ----------
@@ -220,52 +223,74 @@ def helios_line_slots(half_deg: float, freq: float, prf: float) -> tuple[float, 
         The mirror's half sweep M, degrees (polygon: ``max_scan_angle_deg``; rotating: 180).
     freq, prf : float
         Lines per second and pulses per second.
+    window_deg : float
+        The emission window: pulses within ± this angle leave the device (degrees).
 
     Returns
     -------
     step_deg : float
         The angle step per slot, degrees.
-    first : int
-        The slots of a leg's first line: from the slot after nadir up to the last angle below
-        +M.
-    period : int
-        The slots of every later line: from −M up to the last angle below +M.
+    lines : ndarray of int64, shape (6,)
+        ``[first, period, first_on, first_off, on, off]``: a leg's first line holds the slots
+        ``[0, first)`` (the slot after nadir up to the last angle below +M) and emits
+        ``[first_on, first_off)`` of them; every later line holds ``period`` slots (from −M up
+        to the last angle below +M) and emits its slots ``[on, off)`` (counted from its start).
 
     Raises
     ------
     ConfigError
         A half sweep, line frequency or PRF that is not positive, or more than 10⁹ slots per line.
     """
-    if not (half_deg > 0 and freq > 0 and prf > 0) or prf / freq > 1e9:
-        raise ConfigError(f"scanner deflector: half sweep {half_deg}°, {freq} lines/s and a PRF of {prf} Hz give no "
-                          "scan line")
+    if not (half_deg > 0 and freq > 0 and prf > 0):
+        raise ConfigError(f"scanner deflector: half sweep {half_deg}°, {freq} lines/s (scan_freq_hz) and "
+                          f"prf_hz {prf} must be positive")
+    if prf / freq > 1e9:
+        raise ConfigError(f"scanner deflector: scan_freq_hz {freq} at prf_hz {prf} gives {prf / freq:.3g} slots "
+                          "per line (at most 10⁹)")
     m = half_deg * (math.pi / 180.0)
+    w = window_deg * (math.pi / 180.0)
     step = (freq * (m - (-m))) / prf
-    return math.degrees(step), _slots_below(0.0, step, m), _slots_below(-m, step, m) + 1
+    first, first_on, first_off = _walk(0.0, step, m, w)
+    rest, on, off = _walk(-m, step, m, w)
+    # a later line starts with the slot set to −M itself, then the sums from −M
+    on, off = (0, off + 1) if m <= w else (on + 1, off + 1)
+    return math.degrees(step), np.array([first, rest + 1, first_on, first_off, on, off], np.int64)
 
 
 @numba.njit(cache=True)
-def _slots_below(start, step, top):
-    """How many times ``step`` can be added to ``start`` (in float64, one addition at a time)
-    with the sum staying below ``top``."""
+def _walk(start, step, top, window):
+    """Add ``step`` to ``start`` one addition at a time (float64) while the sum stays below ``top``.
+
+    Returns the number of sums below ``top`` and the run ``[on, off)`` of those (numbered from
+    0) whose absolute value is at most ``window`` (``on == off`` when none is).
+    """
     n = 0
+    on = off = -1
     x = start + step
     while x < top:
+        if abs(x) <= window:
+            if on < 0:
+                on = n
+            off = n + 1
         n += 1
         x += step
-    return n
+    if on < 0:
+        on = off = 0
+    return n, on, off
 
 
 # --------------------------------------------------------------------------- per-slot functions
 
 
 @numba.njit(cache=True, inline="always")
-def sweep(kind, k, prf, freq, a, b, first, period):
+def sweep(kind, k, prf, freq, a, b, lines):
     """Scan line, phase, sweep angle and sweep direction of slot ``k`` (not tls).
 
-    Polygon and rotating: line 0 holds the slots ``[0, first)`` at the angles ``(k+1)·b``,
-    line ``L ≥ 1`` the slots ``[first + (L−1)·period, first + L·period)`` at ``a + j·b``
-    (``j`` the slot's place in its line); the phase is ``j / period``. Oscillating and conic:
+    Polygon and rotating (``lines = [first, period, first_on, first_off, on, off]``): line 0
+    holds the slots ``[0, first)`` at the angles ``(k+1)·b``, line ``L ≥ 1`` the slots
+    ``[first + (L−1)·period, first + L·period)`` at ``a + j·b`` (``j`` the slot's place in its
+    line); the phase is ``j / period``, and the angle is NaN for a slot the mirror does not
+    emit (outside ``[first_on, first_off)`` or ``[on, off)``). Oscillating and conic:
     the line is ``floor(k·freq / prf)`` and the phase in [0, 1) what remains: exact for
     integer-valued frequencies (``k·freq`` and ``line·prf`` are exact in float64), so that line
     boundaries fall on the right slots.
@@ -282,11 +307,14 @@ def sweep(kind, k, prf, freq, a, b, first, period):
         An odd line of an oscillating deflector (sweeping right → left).
     """
     if kind == POLYGON or kind == ROTATING:
+        first, period = lines[0], lines[1]
         if k < first:
-            return 0.0, (k + 1.0) / period, (k + 1.0) * b, False
+            angle = (k + 1.0) * b if lines[2] <= k < lines[3] else np.nan
+            return 0.0, (k + 1.0) / period, angle, False
         q = k - first
         j = q % period
-        return np.float64(1 + q // period), j / period, a + j * b, False
+        angle = a + j * b if lines[4] <= j < lines[5] else np.nan
+        return np.float64(1 + q // period), j / period, angle, False
     x = np.float64(k) * freq
     line = np.floor(x / prf)
     frac = (x - line * prf) / prf
@@ -344,7 +372,7 @@ def node_frame(k, az_r, el_r, el_deg):
 
 
 @numba.njit(cache=True)
-def _deflect(k, kind, prf, freq, a, b, first, period, window, sin_cone, cos_cone, az_r, el_r, el_deg):
+def _deflect(k, kind, prf, freq, a, b, lines, window, sin_cone, cos_cone, az_r, el_r, el_deg):
     n = k.shape[0]
     emitted = np.zeros(n, np.bool_)
     direction = np.empty((n, 3))
@@ -355,7 +383,7 @@ def _deflect(k, kind, prf, freq, a, b, first, period, window, sin_cone, cos_cone
         if kind == TLS:
             v0, v1, v2, w0, w1, w2, ang = node_frame(k[i], az_r, el_r, el_deg)
         else:
-            _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b, first, period)
+            _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b, lines)
             if not abs(ang) <= window:
                 continue
             if kind == CONIC:

@@ -79,7 +79,6 @@ reports it (:class:`Approximation`) and states it in an XML comment:
   the mount, the headings as head angles inside it.
 
 Known differences of HELIOS++'s own scan model (not approximations of the export): its
-polygon mirror starts each leg at nadir (the simulator at ``−max_scan_angle_deg``), its
 oscillating mirror slows down at the turns, its TLS head turns continuously during a line,
 and its 2.x energy model is not 1.0.8's (which ``detector: {mode: helios_v1}`` reproduces).
 The scene's reflectances are stated in XML comments, not as HELIOS++ materials: HELIOS++ 1.0.8

@@ -304,7 +304,7 @@ def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, first, period, lo, hi,
 
 
 @numba.njit(cache=True)
-def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, first, period, window,
+def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, lines, window,
           sin_cone, cos_cone, az_r, el_r, el_deg):
     """The pulses of the slots ``[start, stop)`` on the nominal trajectory, slot by slot.
 
@@ -342,7 +342,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
         k = sl - offsets[seg]
         if mode == _NONE:
             if kind != TLS:
-                _, _, angle, _ = sweep(kind, k, prf, freq, a, b, first, period)
+                _, _, angle, _ = sweep(kind, k, prf, freq, a, b, lines)
                 if not abs(angle) <= window:
                     continue
             slot[ne] = sl
@@ -351,7 +351,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
         if kind == TLS:
             v0, v1, v2, w0, w1, w2, angle = node_frame(k, az_r, el_r, el_deg)
         else:
-            line, frac, angle, back = sweep(kind, k, prf, freq, a, b, first, period)
+            line, frac, angle, back = sweep(kind, k, prf, freq, a, b, lines)
             if not abs(angle) <= window:
                 continue
             if kind == CONIC:
@@ -362,7 +362,8 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
                     if seg != w_seg or line != w_line:
                         w_seg, w_line = seg, line
                         w_mode, w_phi, w_beta = _line_window(seg, line, offsets[seg + 1] - offsets[seg], p0, vel,
-                                                             rot, prf, freq, first, period, lo, hi, tan_off)
+                                                             rot, prf, freq, lines[0], lines[1], lo, hi,
+                                                             tan_off)
                     if w_mode != 1:
                         off = r - w_phi
                         if off > np.pi:
