@@ -638,7 +638,7 @@ def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
 
 def _outline_summary(outline, unseen, base):
     part = {"error": {"mean": outline + unseen + base}, "outline": {"mean": outline}, "unseen": {"mean": unseen},
-            "base": {"mean": base}, "reference_m2": 40.0, "cbh_error_m": 0.0}
+            "base": {"mean": base}, "reference_m2": 40.0}
     return {"crown_outline": {"summary": {"fixed_0.25": {"als": part, "uls": part}},
                               "trees": [{"plot": "P1", "tree_id": t} for t in range(12)]}}
 

@@ -151,9 +151,10 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
     -------
     dict
         ``methods``, ``scenarios``, ``plots``; ``summary`` (method → scenario → ``error`` and
-        each of :data:`TERMS` as mean, standard error and count over the trees, in m², and the
-        mean ``cbh_error_m``); ``trees`` (one row per tree, method and scenario: ``plot``,
-        ``tree_id``, ``group``, the CBHs and the four CPAs of the module docstring).
+        each of :data:`TERMS` as mean, standard error and count over the trees, in m²; ``cbh``:
+        the CBH error and its terms ``own_base`` and ``seen_base``, in m, likewise);
+        ``trees`` (one row per tree, method and scenario: ``plot``, ``tree_id``, ``group``, the
+        CBHs and the four CPAs of the module docstring).
 
     Raises
     ------
@@ -212,7 +213,6 @@ def run_crown_outline(manifest, methods, scenarios, *, option: str = "--inputs-j
                 "base": [r["cpa_sim"] - r["cpa_seen"] for r in rs],
             }
             summary[m][sc] = {k: mean_se(v) for k, v in parts.items()}
-            summary[m][sc]["cbh_error_m"] = mean_se([r["cbh_sim"] - r["cbh_ref"] for r in rs])["mean"]
             summary[m][sc]["cbh"] = {
                 "error": mean_se([r["cbh_sim"] - r["cbh_ref"] for r in rs]),
                 "own_base": mean_se([r["cbh_model"] - r["cbh_ref"] for r in rs]),

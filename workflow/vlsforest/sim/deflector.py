@@ -114,9 +114,6 @@ class DeflectorPattern:
         Polygon and rotating: the slots of the first line and of every later one, and the
         emitted ones of each, ``[first, period, first_on, first_off, on, off]``
         (:func:`helios_line_slots`); zeros for the other patterns.
-    window : float
-        An oscillating or conic slot is emitted when ``|angle| <= window`` (inf: every slot;
-        polygon and rotating: inf, their emitted slots are ``lines``').
     sin_cone, cos_cone : float
         Sine and cosine of the conic half angle (0 and 1 for the other patterns).
     az_r, el_r : ndarray
@@ -131,7 +128,6 @@ class DeflectorPattern:
     a: float
     b: float
     lines: np.ndarray
-    window: float
     sin_cone: float
     cos_cone: float
     az_r: np.ndarray
@@ -141,7 +137,7 @@ class DeflectorPattern:
     def args(self) -> tuple:
         """The attributes in the order the compiled functions of this module and of
         :mod:`vlsforest.sim.pulses` take them."""
-        return (self.kind, self.prf, self.freq, self.a, self.b, self.lines, self.window, self.sin_cone,
+        return (self.kind, self.prf, self.freq, self.a, self.b, self.lines, self.sin_cone,
                 self.cos_cone, self.az_r, self.el_r, self.el_deg)
 
 
@@ -184,7 +180,6 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
         raise ConfigError(f"scanner deflector must be one of {', '.join(DEFLECTORS)} (got {d.kind!r})")
     kind = DEFLECTORS.index(d.kind)
     a = b = 0.0
-    window = np.inf
     sin_cone, cos_cone = 0.0, 1.0
     none = np.zeros(0)
     az_r = el_r = el_deg = none
@@ -203,7 +198,7 @@ def deflector_pattern(s: ScannerSettings) -> DeflectorPattern:
         az, el = tls_grid(s.tls)
         az_r, el_r, el_deg = np.radians(az), np.radians(el), np.asarray(el, np.float64)
         freq = 0.0
-    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), lines, float(window), sin_cone,
+    return DeflectorPattern(kind, float(s.emitter.prf_hz), freq, float(a), float(b), lines, sin_cone,
                             cos_cone, az_r, el_r, el_deg)
 
 
@@ -372,7 +367,7 @@ def node_frame(k, az_r, el_r, el_deg):
 
 
 @numba.njit(cache=True)
-def _deflect(k, kind, prf, freq, a, b, lines, window, sin_cone, cos_cone, az_r, el_r, el_deg):
+def _deflect(k, kind, prf, freq, a, b, lines, sin_cone, cos_cone, az_r, el_r, el_deg):
     n = k.shape[0]
     emitted = np.zeros(n, np.bool_)
     direction = np.empty((n, 3))
@@ -384,7 +379,7 @@ def _deflect(k, kind, prf, freq, a, b, lines, window, sin_cone, cos_cone, az_r, 
             v0, v1, v2, w0, w1, w2, ang = node_frame(k[i], az_r, el_r, el_deg)
         else:
             _, frac, ang, back = sweep(kind, k[i], prf, freq, a, b, lines)
-            if not abs(ang) <= window:
+            if np.isnan(ang):  # a polygon or rotating slot the device does not emit
                 continue
             if kind == CONIC:
                 v0, v1, v2, w0, w1, w2, ang = conic_frame(frac, sin_cone, cos_cone)

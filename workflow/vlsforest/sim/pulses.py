@@ -304,7 +304,7 @@ def _line_window(seg, line, n_k, p0, vel, rot, prf, freq, first, period, lo, hi,
 
 
 @numba.njit(cache=True)
-def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, lines, window,
+def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, prf, freq, a, b, lines,
           sin_cone, cos_cone, az_r, el_r, el_deg):
     """The pulses of the slots ``[start, stop)`` on the nominal trajectory, slot by slot.
 
@@ -343,7 +343,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
         if mode == _NONE:
             if kind != TLS:
                 _, _, angle, _ = sweep(kind, k, prf, freq, a, b, lines)
-                if not abs(angle) <= window:
+                if np.isnan(angle):
                     continue
             slot[ne] = sl
             ne += 1
@@ -352,7 +352,7 @@ def _emit(start, stop, offsets, t0, p0, vel, rot, mode, lo, hi, tan_off, kind, p
             v0, v1, v2, w0, w1, w2, angle = node_frame(k, az_r, el_r, el_deg)
         else:
             line, frac, angle, back = sweep(kind, k, prf, freq, a, b, lines)
-            if not abs(angle) <= window:
+            if np.isnan(angle):
                 continue
             if kind == CONIC:
                 v0, v1, v2, w0, w1, w2, angle = conic_frame(frac, sin_cone, cos_cone)
