@@ -325,6 +325,47 @@ def test_metrics_with_no_listed_tree_in_the_cloud(ws, tmp_path, capsys):
     _check(rc, capsys.readouterr().err, "metrics", ["401", "402"], [out])
 
 
+TABLE_CASES = [
+    # (case, stage, argv with {table} for the spoilt table, table text, needle)
+    ("extract_ids_not_integers", "extract", ["extract", "sim", "{cloud}", "--targets", "{table}", "-o", "{out}"],
+     "target_id,tree_id,z\n301,7.5,0.0\n", "'tree_id' that are not integers"),
+    ("extract_no_rows", "extract", ["extract", "sim", "{cloud}", "--targets", "{table}", "-o", "{out}"],
+     "target_id,tree_id,z\n", "has no rows"),
+    ("extract_no_column", "extract", ["extract", "sim", "{cloud}", "--targets", "{table}", "-o", "{out}"],
+     "target_id,z\n301,0.0\n", "lacks column(s) ['tree_id']"),
+    ("voxels_ids_not_integers", "voxels",
+     ["voxels", "{crowns}", "--method-json", '{{"kind": "fixed", "voxel_size": 0.5}}', "--targets", "{table}",
+      "-o", "{out}"], "tree_id,group\nseven,conifer\n", "'tree_id' that are not integers"),
+    ("voxels_no_group", "voxels",
+     ["voxels", "{crowns}", "--method-json", '{{"kind": "fixed", "voxel_size": 0.5}}', "--targets", "{table}",
+      "-o", "{out}"], "tree_id\n7\n", "lacks column(s) ['group']"),
+    ("voxels_unreadable", "voxels",
+     ["voxels", "{crowns}", "--method-json", '{{"kind": "fixed", "voxel_size": 0.5}}', "--targets", "{table}",
+      "-o", "{out}"], "tree_id,group\n7,conifer\n7,conifer,extra,more\n", "not a readable CSV"),
+]
+
+
+@pytest.mark.parametrize("case, stage, argv, text, needle", TABLE_CASES, ids=[c[0] for c in TABLE_CASES])
+def test_bad_table_is_one_line_naming_the_file(ws, tmp_path, capsys, case, stage, argv, text, needle):
+    table, out = tmp_path / "table.csv", tmp_path / ("out.laz" if stage == "extract" else "out.npz")
+    table.write_text(text)
+    names = {"table": table, "out": out, "cloud": ws / "cloud.las", "crowns": ws / "crowns.npz"}
+    rc = main([a.format(**names) for a in argv])
+    _check(rc, capsys.readouterr().err, stage, [table, needle], [out])
+
+
+def test_collect_metrics_with_a_bad_targets_table_names_it(tmp_path, capsys):
+    """``collect metrics`` reads each plot's targets table beside its metrics (two folders up)."""
+    metrics = tmp_path / "P1" / "fixed_0.25" / "als" / "metrics.csv"
+    metrics.parent.mkdir(parents=True)
+    metrics.write_text("tree_id,height\n7,20.0\n")
+    targets = tmp_path / "P1" / "targets.csv"
+    targets.write_text("target_id,species\nx,spruce\n")
+    out = tmp_path / "all.csv"
+    rc = main(["collect", "metrics", str(metrics), "-o", str(out)])
+    _check(rc, capsys.readouterr().err, "collect", [targets, "'target_id' that are not integers"], [out])
+
+
 # ------------------------------------------------------------------- class 5: messages
 def test_extract_sim_without_object_id_names_the_file(ws, tmp_path, capsys):
     out = tmp_path / "t.laz"

@@ -38,6 +38,7 @@ import pandas as pd
 from vlsforest.domain.species import PAD_GROUPS, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.atomic import save_figure, write_csv
+from vlsforest.io.csvfile import read_csv_table
 from vlsforest.pad.estimate import estimate_pad
 from vlsforest.pad.traverse import Accumulators
 
@@ -84,7 +85,7 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     layouts = {p.name: p for p in layouts_from_settings(st_path)}
     if plot not in layouts:
         raise InputDataError(f"{st_path}: no plot {plot!r} (plots: {sorted(layouts)})")
-    trees = pd.read_csv(tr_path)
+    trees = read_csv_table(tr_path, "tree table", ("plot",), ids=("tree_id",))
     trees = trees[trees["plot"] == plot].reset_index(drop=True)
     layout = layouts[plot]
     if set(trees["tree_id"]) != {t.tree_id for t in layout.trees}:

@@ -753,19 +753,10 @@ def _dbh_fit(axis: StemAxis, ground: float):
 
 def read_scanner_positions(path) -> dict:
     """Scanner positions from a ``scans.csv`` (columns ``scan_id, x, y, z``): dict id → (3,)."""
-    import pandas as pd
+    from vlsforest.io.csvfile import read_csv_table
 
     path = Path(path)
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such file")
-    try:
-        df = pd.read_csv(path)
-    except Exception as exc:  # pandas raises several types for bad CSV
-        raise InputDataError(f"{path}: not a readable CSV file ({exc})") from None
-    need = ["scan_id", "x", "y", "z"]
-    miss = [c for c in need if c not in df.columns]
-    if miss:
-        raise InputDataError(f"{path}: missing column(s) {', '.join(miss)}")
+    df = read_csv_table(path, "scan table", ("scan_id", "x", "y", "z"))
     if df.empty:
         raise InputDataError(f"{path}: no scans listed")
     try:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from vlsforest.commands import CSV, PNG, declare_outputs
 from vlsforest.io.atomic import write_csv
+from vlsforest.io.csvfile import read_csv_table
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -66,17 +67,13 @@ def run(args) -> int:
         for f in args.inputs:
             plot, source, scenario = _parts(f, 3, "metrics")
             if plot not in species:
-                tpath = f.parents[2] / "targets.csv"
-                if not tpath.is_file():
-                    raise InputDataError(f"{tpath}: targets table of plot {plot} is missing")
-                t = pd.read_csv(tpath)
-                species[plot] = dict(zip(t.target_id.astype(int), t.species.astype(str)))
-            df = pd.read_csv(f)
-            if "tree_id" not in df.columns:
-                raise InputDataError(f"{f}: no tree_id column")
+                t = read_csv_table(f.parents[2] / "targets.csv", f"targets table of plot {plot}", ("species",),
+                                   ids=("target_id",))
+                species[plot] = dict(zip(t.target_id, t.species.astype(str)))
+            df = read_csv_table(f, "metrics table", ids=("tree_id",))
             df.insert(0, "method", source)
             df.insert(0, "scenario", scenario)
-            df.insert(0, "species", [species[plot].get(int(i), "unknown") for i in df.tree_id])
+            df.insert(0, "species", [species[plot].get(i, "unknown") for i in df.tree_id])
             df.insert(0, "plot", plot)
             cols = ["plot", "tree_id", "species", "scenario", "method"]
             frames.append(df[cols + [c for c in df.columns if c not in cols]])
@@ -94,9 +91,7 @@ def run(args) -> int:
 
         frames = []
         for f in args.inputs:
-            if not f.is_file():
-                raise InputDataError(f"{f}: no such PAD validation table")
-            frames.append(pd.read_csv(f))
+            frames.append(read_csv_table(f, "PAD validation table"))
         out = pd.concat(frames, ignore_index=True)
         if args.figure is not None:
             plot_validation(out, args.figure)

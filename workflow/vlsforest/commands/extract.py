@@ -49,15 +49,12 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def _targets(path: Path):
-    import pandas as pd
-
     from vlsforest.errors import InputDataError
+    from vlsforest.io.csvfile import read_csv_table
 
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such targets table")
-    df = pd.read_csv(path)
-    if not {"target_id", "tree_id"} <= set(df.columns) or len(df) == 0:
-        raise InputDataError(f"{path}: needs rows with columns target_id, tree_id")
+    df = read_csv_table(path, "targets table", ids=("target_id", "tree_id"))
+    if len(df) == 0:
+        raise InputDataError(f"{path}: targets table has no rows")
     return df
 
 

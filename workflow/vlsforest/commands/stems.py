@@ -177,18 +177,10 @@ def run(args) -> int:
 
 
 def _run_plot(args, cfg: dict, scanners: dict) -> int:
-    import pandas as pd
+    from vlsforest.io.csvfile import read_csv_table
 
     path = Path(args.targets)
-    if not path.is_file():
-        raise InputDataError(f"{path}: no such file")
-    try:
-        targets = pd.read_csv(path)
-    except Exception as exc:  # pandas raises several types for bad CSV
-        raise InputDataError(f"{path}: not a readable CSV file ({exc})") from None
-    missing = [c for c in ("tree_id", "x", "y", "z") if c not in targets.columns]
-    if missing:
-        raise InputDataError(f"{path}: missing column(s) {', '.join(missing)}")
+    targets = read_csv_table(path, "targets table", ("tree_id", "x", "y", "z"))
     if targets.empty:
         raise InputDataError(f"{path}: no targets listed")
     try:

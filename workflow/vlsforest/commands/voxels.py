@@ -53,12 +53,10 @@ def run(args) -> int:
     xyz, owner = load_crowns(args.crowns)
     species_of = {}
     if args.targets is not None:
-        import pandas as pd
+        from vlsforest.io.csvfile import read_csv_table
 
-        t = pd.read_csv(args.targets)
-        if not {"tree_id", "group"} <= set(t.columns):
-            raise InputDataError(f"{args.targets}: needs columns tree_id, group")
-        species_of = dict(zip(t.tree_id.astype(int), t.group.astype(str)))
+        t = read_csv_table(args.targets, "targets table", ("group",), ids=("tree_id",))
+        species_of = dict(zip(t.tree_id.tolist(), t.group.astype(str)))
     pad = PadGrid.from_vox(args.pad, args.min_pulses) if args.pad is not None else None
     if args.groups_json:
         try:

@@ -20,6 +20,7 @@ from vlsforest.diagnose.features import GROUND_PAD_M, cloud_arrays, tree_feature
 from vlsforest.diagnose.setup import PlotInput, Setup
 from vlsforest.diagnose.traces import TraceCache
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.csvfile import read_csv_table
 
 
 def trace_part(assign: dict) -> dict:
@@ -105,9 +106,9 @@ class PlotSim:
         seg = Path(p.segment)
         if not (seg / "trees.csv").is_file():
             raise InputDataError(f"{seg}: no trees.csv (a 'vlsforest segment' output folder is needed)")
-        stems = pd.read_csv(seg / "trees.csv")
+        stems = read_csv_table(seg / "trees.csv", "tree table", ids=("tree_id",))
         pts = {}
-        for tid in stems.tree_id.astype(int):
+        for tid in stems.tree_id.tolist():
             f = seg / "trees" / f"{tid}.laz"
             if f.is_file():
                 pts[tid] = read_las(f).xyz

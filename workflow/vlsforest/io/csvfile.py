@@ -16,7 +16,7 @@ from vlsforest.errors import InputDataError
 __all__ = ["read_csv_table", "read_height_table"]
 
 
-def read_csv_table(path, what: str = "CSV file", columns=()):
+def read_csv_table(path, what: str = "CSV file", columns=(), ids=()):
     """Read a CSV file with a header row.
 
     Parameters
@@ -27,31 +27,41 @@ def read_csv_table(path, what: str = "CSV file", columns=()):
         What the file is, for the messages (``"trajectory file"``: ``…: no such trajectory file``).
     columns : iterable of str
         Columns the table must have (exact names).
+    ids : iterable of str
+        Further columns it must have that hold integer ids (tree or target ids); they are
+        returned as int64.
 
     Returns
     -------
     pandas.DataFrame
-        The table as ``pandas.read_csv`` reads it.
+        The table as ``pandas.read_csv`` reads it, ``ids`` as int64.
 
     Raises
     ------
     InputDataError
         The file does not exist (or is not a file), pandas cannot read it (its reason, on one
-        line), or it lacks one of ``columns`` (naming those it lacks); the message starts with
-        the path.
+        line), it lacks one of ``columns`` or ``ids`` (naming those it lacks), or a value of
+        ``ids`` is not an integer (naming the column); the message starts with the path.
     """
+    import numpy as np
     import pandas as pd
 
     path = Path(path)
+    ids = tuple(ids)
     if not path.is_file():
         raise InputDataError(f"{path}: no such {what}")
     try:
         df = pd.read_csv(path)
     except Exception as exc:  # pandas raises parser, decoding and OS errors alike
         raise InputDataError(f"{path}: not a readable CSV ({' '.join(str(exc).split())})") from None
-    missing = set(columns) - set(df.columns)
+    missing = (set(columns) | set(ids)) - set(df.columns)
     if missing:
         raise InputDataError(f"{path}: {what} lacks column(s) {sorted(missing)}")
+    for col in ids:
+        v = pd.to_numeric(df[col], errors="coerce").to_numpy(np.float64)
+        if not (np.isfinite(v).all() and (v == np.round(v)).all()):
+            raise InputDataError(f"{path}: {what} has ids in column {col!r} that are not integers")
+        df[col] = v.astype(np.int64)
     return df
 
 
@@ -83,15 +93,9 @@ def read_height_table(path, what: str, ids=(), columns=()):
     import numpy as np
     import pandas as pd
 
-    ids = tuple(ids)
-    df = read_csv_table(path, what, (*ids, *columns, "z"))
+    df = read_csv_table(path, what, (*columns, "z"), ids)
     z = pd.to_numeric(df["z"], errors="coerce").to_numpy(np.float64)
     if not np.isfinite(z).all():
         raise InputDataError(f"{path}: {what} has ground heights in column 'z' that are not finite numbers")
     df["z"] = z
-    for col in ids:
-        v = pd.to_numeric(df[col], errors="coerce").to_numpy(np.float64)
-        if not (np.isfinite(v).all() and (v == np.round(v)).all()):
-            raise InputDataError(f"{path}: {what} has ids in column {col!r} that are not integers")
-        df[col] = v.astype(np.int64)
     return df

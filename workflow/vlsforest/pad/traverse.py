@@ -67,6 +67,7 @@ import pandas as pd
 from numba import njit
 
 from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.io.csvfile import read_csv_table
 
 #: beam fraction below which a shot is considered fully intercepted
 _RESIDUAL_MIN = 1e-5
@@ -159,13 +160,7 @@ def _scan_files(tls_dir: Path) -> list[tuple[int, Path]]:
 def _read_scans_csv(path: Path) -> pd.DataFrame | None:
     if not path.is_file():
         return None
-    try:
-        df = pd.read_csv(path)
-    except Exception as exc:  # pandas raises many types
-        raise InputDataError(f"{path}: not a readable CSV ({exc})") from None
-    if "scan_id" not in df.columns:
-        raise InputDataError(f"{path}: no column 'scan_id' (columns: {', '.join(df.columns)})")
-    return df.set_index("scan_id")
+    return read_csv_table(path, "scan table", ("scan_id",)).set_index("scan_id")
 
 
 def _row(table: pd.DataFrame | None, scan_id: int):
