@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from vlsforest.errors import InputDataError
-from vlsforest.sim import Material, Scene, redetect, simulate, trace_hits
+from vlsforest.sim import Material, Scene, hit_offsets, redetect, simulate, trace_hits
 from vlsforest.sim.survey import survey_from_dict
 
 
@@ -256,6 +256,23 @@ def test_trace_hits_equals_hit_pulses_without_detection(workers):
     again = redetect(sc.part_table(), pulses, hits, sv, block_slots=997)
     assert len(again.points["xyz"]) > 100
     assert np.array_equal(again.points["xyz"], base.points["xyz"])
+    # the hits' index given once (as the diagnosis does for many re-detections): the same points
+    ptr = hit_offsets(pulses, hits)
+    assert ptr[0] == 0 and ptr[-1] == len(hits["pulse"]) and np.all(np.diff(ptr) >= 0)
+    for i in np.flatnonzero(np.diff(ptr))[:50]:
+        assert (hits["pulse"][ptr[i]:ptr[i + 1]] == i).all()
+    given = redetect(sc.part_table(), pulses, hits, sv, block_slots=997, hit_ptr=ptr)
+    for k in again.points:
+        assert np.array_equal(given.points[k], again.points[k]), k
+
+
+def test_hit_offsets_refuse_hits_out_of_pulse_order():
+    pulses = {"slot": np.array([3, 5, 9])}
+    with pytest.raises(InputDataError, match="grouped by pulse"):
+        hit_offsets(pulses, {"pulse": np.array([0, 2, 1], np.int32)})
+    with pytest.raises(InputDataError, match="ascending slot order"):
+        hit_offsets({"slot": np.array([3, 3, 9])}, {"pulse": np.array([0, 1], np.int32)})
+    assert hit_offsets(pulses, {"pulse": np.array([0, 0, 2], np.int32)}).tolist() == [0, 2, 2, 3]
 
 
 def test_threshold_removes_weakest_first():

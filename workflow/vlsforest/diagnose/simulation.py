@@ -132,6 +132,7 @@ class PlotSim:
         #: the scene's parts (reflectance, specularity, shininess per part) the re-detection reads
         self.parts = self.scene.part_table()
         self._sims: dict = {}
+        self._offsets = (None, None)  # (trace key, hit_offsets of that trace)
         self.n_redetected = 0
 
     @property
@@ -218,7 +219,7 @@ class PlotSim:
 
     def features(self, assign: dict) -> pd.DataFrame:
         """The observables per tree of the simulation with ``assign`` (cached)."""
-        from vlsforest.sim import redetect
+        from vlsforest.sim import hit_offsets, redetect
 
         key, sv, edits = self.setting(assign)
         if key not in self._sims:
@@ -228,7 +229,10 @@ class PlotSim:
             if "specularity" in edits:
                 parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
                 parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
-            res = redetect(parts, pulses, hits, sv, seed=self.seed)
+            tkey = self.trace_key(assign)
+            if self._offsets[0] != tkey:  # the hits' index, kept for the trace rendered last
+                self._offsets = (tkey, hit_offsets(pulses, hits))
+            res = redetect(parts, pulses, hits, sv, seed=self.seed, hit_ptr=self._offsets[1])
             self.n_redetected += 1
             self._sims[key] = self.observables(cloud_arrays(res))
         return self._sims[key]

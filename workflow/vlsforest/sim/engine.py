@@ -688,8 +688,36 @@ class _StoredBatch:
         return len(self.slot)
 
 
+def hit_offsets(pulses: dict, hits: dict) -> np.ndarray:
+    """Where each stored pulse's sub-ray hits start in ``hits`` (for :func:`redetect`).
+
+    Parameters
+    ----------
+    pulses, hits : dict
+        As in :class:`SimulationResult`: pulses in ascending slot order, hits grouped by pulse
+        in pulse order.
+
+    Returns
+    -------
+    ndarray of int64, shape (n_pulses + 1,)
+        Pulse ``i``'s hits are ``hits[...][ptr[i]:ptr[i + 1]]``.
+
+    Raises
+    ------
+    InputDataError
+        The pulses or hits are not in that order.
+    """
+    if np.any(np.diff(pulses["slot"]) <= 0) or np.any(np.diff(hits["pulse"]) < 0):
+        raise InputDataError("the stored pulses must be in ascending slot order and the hits grouped by pulse "
+                             "in pulse order (as simulate and trace_hits give them)")
+    ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=ptr[1:])
+    return ptr
+
+
 def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | None = None,
-             block_slots: int = 20000, beam: dict | None = None) -> SimulationResult:
+             block_slots: int = 20000, beam: dict | None = None,
+             hit_ptr: np.ndarray | None = None) -> SimulationResult:
     """Re-run detection (energy, waveform, peaks, noise) on stored sub-ray hits — no tracing.
 
     The beam geometry (divergence, sample quality) must be the one the hits were traced
@@ -713,6 +741,9 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
     beam : dict, optional
         The beam geometry the hits were traced with (as :func:`vlsforest.sim.output.load_hits`
         returns it); any difference from the survey's scanner is a :class:`ConfigError`.
+    hit_ptr : ndarray, optional
+        :func:`hit_offsets` of ``pulses`` and ``hits``, computed here when not given (a caller
+        that re-detects the same hits many times computes it once).
     """
     from types import SimpleNamespace
 
@@ -737,11 +768,8 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
                           f"{survey.scanner.beam.sample_quality} gives ({job.pattern.n}); detection needs the "
                           "beam geometry the hits were traced with")
     blocks = pulses["slot"] // job.block_slots
-    hit_ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=hit_ptr[1:])
-    if np.any(np.diff(pulses["slot"]) <= 0) or np.any(np.diff(hits["pulse"]) < 0):
-        raise InputDataError("the stored pulses must be in ascending slot order and the hits grouped by pulse "
-                             "in pulse order (as simulate and trace_hits give them)")
+    if hit_ptr is None:
+        hit_ptr = hit_offsets(pulses, hits)
     pts, n_ret = [], []
     ub, first = np.unique(blocks, return_index=True)
     for b, r0, r1 in zip(ub, first, np.r_[first[1:], len(blocks)]):
