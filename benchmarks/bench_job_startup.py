@@ -14,8 +14,9 @@ the study:
 3. **The estimate**: jobs × start-up per rule, and its sum over the study (``startup_cpu_s``).
 4. With ``--snakemake-jobs N``: **Snakemake's own CPU per job**, from a workflow of N independent
    jobs that each sleep ``--job-seconds`` (and write a benchmark file, as the study's jobs do)
-   run on ``--cores`` in a temporary folder, once with Snakemake's scheduler as installed and once
-   with ``VLSFOREST_SCHEDULER_PATCH=1`` (``workflow/rules/scheduler_patch.py``): wall time and the
+   run on ``--cores`` in a temporary folder, once with Snakemake's scheduler as installed
+   (``VLSFOREST_SCHEDULER_PATCH=0``) and once with the workflow's scheduler patch
+   (``workflow/rules/scheduler_patch.py``, on by default): wall time and the
    CPU seconds of the Snakemake process itself (``bench_study.own_cpu_s``; its start-up and DAG
    build included) per run.
 
@@ -116,9 +117,7 @@ def snakemake_overhead(n: int, seconds: float, cores: int, patched: bool, env: d
     import time
 
     run_env = dict(env)
-    run_env.pop("VLSFOREST_SCHEDULER_PATCH", None)
-    if patched:
-        run_env["VLSFOREST_SCHEDULER_PATCH"] = "1"
+    run_env["VLSFOREST_SCHEDULER_PATCH"] = "1" if patched else "0"
     patch = str(benchresult.REPO / "workflow" / "rules" / "scheduler_patch.py")
     with tempfile.TemporaryDirectory(prefix="bench_snakemake_") as tmp:
         Path(tmp, "Snakefile").write_text(SLEEP_WORKFLOW.format(patch=patch, n=n, seconds=seconds))

@@ -1,6 +1,6 @@
-"""The opt-in scheduler patch (workflow/rules/scheduler_patch.py): off unless
-VLSFOREST_SCHEDULER_PATCH=1, applied only to the Snakemake method it was written against, at most
-one pending re-evaluation timer, no lost wake-up.
+"""The scheduler patch (workflow/rules/scheduler_patch.py): on unless VLSFOREST_SCHEDULER_PATCH=0,
+applied only to the Snakemake method it was written against (a warning only where it was asked for
+with VLSFOREST_SCHEDULER_PATCH=1), at most one pending re-evaluation timer, no lost wake-up.
 
 ``test_installed_snakemake_is_the_one_the_patch_was_written_for`` fails when Snakemake's private
 ``JobScheduler._schedule_reevalutation`` changes: then the patch must be re-checked (or dropped).
@@ -61,12 +61,32 @@ def test_a_different_method_is_not_patched():
         assert not patch.apply(type("NoMethod", (), {}))
 
 
-def test_off_unless_the_variable_is_one():
+def test_on_unless_the_variable_is_zero():
     patch = _load()
-    assert not patch.enabled({})
+    assert patch.enabled({}) and not patch.demanded({})
     assert not patch.enabled({patch.ENV_VAR: "0"})
-    assert patch.enabled({patch.ENV_VAR: "1"})
-    assert not patch.apply_if_enabled({})
+    assert not patch.apply_if_enabled({patch.ENV_VAR: "0"})
+    assert patch.enabled({patch.ENV_VAR: "1"}) and patch.demanded({patch.ENV_VAR: "1"})
+
+
+def test_another_snakemake_is_left_alone_with_a_warning_only_when_asked(monkeypatch):
+    import warnings
+
+    from snakemake.scheduling import job_scheduler
+
+    patch = _load()
+
+    class Other:
+        def _schedule_reevalutation(self, delay):
+            pass
+
+    monkeypatch.setattr(job_scheduler, "JobScheduler", Other)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not patch.apply_if_enabled({})  # the default: no patch, no warning
+    with pytest.warns(UserWarning, match="not patched"):
+        assert not patch.apply_if_enabled({patch.ENV_VAR: "1"})
+    assert not getattr(Other._schedule_reevalutation, "one_pending", False)
 
 
 def test_one_pending_timer_and_no_lost_wakeup(monkeypatch):
@@ -103,8 +123,8 @@ def test_one_pending_timer_and_no_lost_wakeup(monkeypatch):
 
 
 @pytest.mark.e2e  # Snakemake dry runs
-@pytest.mark.parametrize("value, applied", [(None, False), ("1", True)])
-def test_the_workflow_applies_it_only_when_asked(tmp_path, value, applied):
+@pytest.mark.parametrize("value, applied", [(None, True), ("0", False), ("1", True)])
+def test_the_workflow_applies_it_unless_switched_off(tmp_path, value, applied):
     """A copy of the repository whose Snakefile reports, after the workflow is parsed, whether
     Snakemake's method is the patched one."""
     import os

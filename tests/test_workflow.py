@@ -123,6 +123,9 @@ def _api_dry_run(workdir, configfile=None, config=None):
 
     cwd, env = os.getcwd(), dict(os.environ)
     updated: list[str] = []
+    # the workflow's scheduler patch stays out of this test process (a dry run schedules nothing;
+    # tests/test_scheduler_patch.py checks Snakemake's own method in the same process)
+    os.environ["VLSFOREST_SCHEDULER_PATCH"] = "0"
     try:
         with SnakemakeApi(OutputSettings(dryrun=True)) as api:
             wf = api.workflow(

@@ -585,9 +585,10 @@ def diagnosis_param(wildcards):
 
 
 # ---------------------------------------------------------------------------------------------
-# Opt-in: VLSFOREST_SCHEDULER_PATCH=1 patches Snakemake's scheduler to keep at most one pending
-# re-evaluation timer (less CPU for Snakemake itself on long runs; results do not depend on it).
-# Off by default: it replaces a private Snakemake method (see workflow/rules/scheduler_patch.py).
+# Snakemake's scheduler keeps at most one pending re-evaluation timer (less CPU for Snakemake
+# itself on long runs; results do not depend on it). It replaces a private Snakemake method, so it
+# is applied only to the Snakemake it was written for (workflow/rules/scheduler_patch.py);
+# VLSFOREST_SCHEDULER_PATCH=0 switches it off.
 # ---------------------------------------------------------------------------------------------
 _scheduler_patch = load_module_file(
     "vlsforest_scheduler_patch", Path(workflow.basedir, "workflow", "rules", "scheduler_patch.py")

@@ -1,11 +1,13 @@
-"""Opt-in patch of Snakemake's job scheduler: at most one pending re-evaluation timer.
+"""Patch of Snakemake's job scheduler: at most one pending re-evaluation timer.
 
-Off by default. ``VLSFOREST_SCHEDULER_PATCH=1`` in the environment of ``snakemake`` switches it on
-(workflow/rules/common.smk calls :func:`apply_if_enabled`). It replaces a private method of
-Snakemake (``JobScheduler._schedule_reevalutation``, spelled so upstream), so it is applied only
-where that method is exactly the one it was written against (:data:`EXPECTED_SOURCE`, Snakemake
-9.x); anywhere else it warns and leaves Snakemake as it is. ``tests/test_scheduler_patch.py``
-fails when the installed Snakemake's method differs.
+On by default (workflow/rules/common.smk calls :func:`apply_if_enabled`);
+``VLSFOREST_SCHEDULER_PATCH=0`` in the environment of ``snakemake`` switches it off. It replaces a
+private method of Snakemake (``JobScheduler._schedule_reevalutation``, spelled so upstream), so it
+is applied only where that method is exactly the one it was written against
+(:data:`EXPECTED_SOURCE`, the Snakemake 9.x of the project's requirements); anywhere else (a
+cluster's own Snakemake, say) Snakemake stays as it is, with a warning only where
+``VLSFOREST_SCHEDULER_PATCH=1`` asked for the patch. ``tests/test_scheduler_patch.py`` fails when
+the installed Snakemake's method differs.
 
 Why: with its default ``--max-jobs-per-timespan 100/1s``, Snakemake's scheduler ends every
 scheduling pass by starting a 1 s timer whose firing triggers another pass, which starts the next
@@ -27,7 +29,8 @@ import textwrap
 import threading
 import warnings
 
-#: the environment variable that switches the patch on ("1")
+#: the environment variable that switches the patch off ("0") or demands it ("1": a warning where
+#: it cannot be applied)
 ENV_VAR = "VLSFOREST_SCHEDULER_PATCH"
 
 #: Snakemake's method as the patch expects it (dedented source)
@@ -41,7 +44,12 @@ def _schedule_reevalutation(self, delay: int) -> None:
 
 
 def enabled(environ=None) -> bool:
-    """Whether :data:`ENV_VAR` asks for the patch (``"1"``)."""
+    """Whether the patch is wanted: unless :data:`ENV_VAR` is ``"0"``."""
+    return (os.environ if environ is None else environ).get(ENV_VAR, "") != "0"
+
+
+def demanded(environ=None) -> bool:
+    """Whether :data:`ENV_VAR` asks for the patch explicitly (``"1"``)."""
     return (os.environ if environ is None else environ).get(ENV_VAR, "") == "1"
 
 
@@ -83,25 +91,28 @@ def _schedule_reevalutation(self, delay):
 _schedule_reevalutation.one_pending = True
 
 
-def apply(scheduler_class=None) -> bool:
+def apply(scheduler_class=None, warn: bool = True) -> bool:
     """Patch ``JobScheduler`` (or ``scheduler_class``) if :func:`compatible`; return whether the
-    patch is in place. An incompatible Snakemake gets a warning and no patch."""
+    patch is in place. An incompatible Snakemake gets no patch (and, with ``warn``, a warning)."""
     if scheduler_class is None:
         try:
             from snakemake.scheduling.job_scheduler import JobScheduler as scheduler_class
         except ImportError:
-            warnings.warn(f"{ENV_VAR}: Snakemake's JobScheduler not found; not patched", stacklevel=2)
+            if warn:
+                warnings.warn(f"{ENV_VAR}: Snakemake's JobScheduler not found; not patched", stacklevel=2)
             return False
     if not compatible(scheduler_class):
-        warnings.warn(
-            f"{ENV_VAR}: this Snakemake's JobScheduler._schedule_reevalutation is not the one the "
-            "patch was written for; not patched", stacklevel=2,
-        )
+        if warn:
+            warnings.warn(
+                f"{ENV_VAR}: this Snakemake's JobScheduler._schedule_reevalutation is not the one the "
+                "patch was written for; not patched", stacklevel=2,
+            )
         return False
     scheduler_class._schedule_reevalutation = _schedule_reevalutation
     return True
 
 
 def apply_if_enabled(environ=None) -> bool:
-    """:func:`apply` when :func:`enabled`; return whether the patch is in place."""
-    return apply() if enabled(environ) else False
+    """:func:`apply` when :func:`enabled` (warning only when :func:`demanded`); return whether
+    the patch is in place."""
+    return apply(warn=demanded(environ)) if enabled(environ) else False
