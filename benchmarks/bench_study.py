@@ -8,6 +8,8 @@ records one row in ``benchmarks/results/bench_study.jsonl`` (:mod:`benchresult`)
 - ``snakemake_cpu_s``: the CPU seconds of the Snakemake process itself (its scheduler, its job
   threads and its benchmark sampling; read from ``/proc/<pid>/stat`` every ``--poll`` seconds
   while it runs), and ``jobs_cpu_s``: the rest, the CPU seconds of the jobs' processes;
+- ``scheduler_patch_env``: the value of ``VLSFOREST_SCHEDULER_PATCH`` the run saw (None: unset,
+  the workflow's default, the patch on; ``workflow/rules/scheduler_patch.py``);
 - ``max_rss_mb``: the largest resident set of any one process it waited for;
 - ``jobs``: the jobs Snakemake ran (from its summary line);
 - ``rules``: per rule of the jobs this run ran (read from Snakemake's job lines: ``rule NAME:``
@@ -174,7 +176,8 @@ def main(argv) -> int:
                wall_s=round(wall, 1), cpu_s=round(cpu, 1), snakemake_cpu_s=round(own, 1),
                jobs_cpu_s=round(cpu - own, 1), max_rss_mb=round(after.ru_maxrss / 1024.0, 1), jobs=jobs,
                rules=rules, cpu_s_outside_benchmarked_rules=round(cpu - inside, 1),
-               jobs_cpu_s_unsampled=round(cpu - own - inside, 1), exit_code=proc.returncode)
+               jobs_cpu_s_unsampled=round(cpu - own - inside, 1), exit_code=proc.returncode,
+               scheduler_patch_env=os.environ.get("VLSFOREST_SCHEDULER_PATCH"))
     if args.note:
         row["note"] = args.note
     benchresult.record(**row)

@@ -342,6 +342,9 @@ TABLE_CASES = [
     ("voxels_unreadable", "voxels",
      ["voxels", "{crowns}", "--method-json", '{{"kind": "fixed", "voxel_size": 0.5}}', "--targets", "{table}",
       "-o", "{out}"], "tree_id,group\n7,conifer\n7,conifer,extra,more\n", "not a readable CSV"),
+    ("scene_crowns_ids_not_integers", "scene",
+     ["scene", "crowns", "{ws}", "--stems", "{ws}", "--targets", "{table}", "-o", "{out}"],
+     "tree_id\n7\n\n8.5\n", "'tree_id' that are not integers"),
 ]
 
 
@@ -349,7 +352,7 @@ TABLE_CASES = [
 def test_bad_table_is_one_line_naming_the_file(ws, tmp_path, capsys, case, stage, argv, text, needle):
     table, out = tmp_path / "table.csv", tmp_path / ("out.laz" if stage == "extract" else "out.npz")
     table.write_text(text)
-    names = {"table": table, "out": out, "cloud": ws / "cloud.las", "crowns": ws / "crowns.npz"}
+    names = {"table": table, "out": out, "cloud": ws / "cloud.las", "crowns": ws / "crowns.npz", "ws": ws}
     rc = main([a.format(**names) for a in argv])
     _check(rc, capsys.readouterr().err, stage, [table, needle], [out])
 

@@ -67,6 +67,8 @@ def test_on_unless_the_variable_is_zero():
     assert not patch.enabled({patch.ENV_VAR: "0"})
     assert not patch.apply_if_enabled({patch.ENV_VAR: "0"})
     assert patch.enabled({patch.ENV_VAR: "1"}) and patch.demanded({patch.ENV_VAR: "1"})
+    for off in ("false", "Off", " no "):
+        assert not patch.enabled({patch.ENV_VAR: off}), off
 
 
 def test_another_snakemake_is_left_alone_with_a_warning_only_when_asked(monkeypatch):

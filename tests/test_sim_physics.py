@@ -264,6 +264,8 @@ def test_trace_hits_equals_hit_pulses_without_detection(workers):
     given = redetect(sc.part_table(), pulses, hits, sv, block_slots=997, hit_ptr=ptr)
     for k in again.points:
         assert np.array_equal(given.points[k], again.points[k]), k
+    with pytest.raises(InputDataError, match="hit_ptr"):
+        redetect(sc.part_table(), pulses, hits, sv, hit_ptr=ptr[:-1])
 
 
 def test_hit_offsets_refuse_hits_out_of_pulse_order():
@@ -273,6 +275,8 @@ def test_hit_offsets_refuse_hits_out_of_pulse_order():
     with pytest.raises(InputDataError, match="ascending slot order"):
         hit_offsets({"slot": np.array([3, 3, 9])}, {"pulse": np.array([0, 1], np.int32)})
     assert hit_offsets(pulses, {"pulse": np.array([0, 0, 2], np.int32)}).tolist() == [0, 2, 2, 3]
+    with pytest.raises(InputDataError, match="outside 0…2"):
+        hit_offsets(pulses, {"pulse": np.array([0, 3], np.int32)})
 
 
 def test_threshold_removes_weakest_first():

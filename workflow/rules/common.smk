@@ -1,6 +1,6 @@
 # Shared helpers: config validation, wildcard constraints, target lists, parameter providers,
 # the job environment (how shell commands find the vlsforest package), code hashes and the
-# opt-in scheduler patch.
+# scheduler patch (on by default).
 import json
 import os
 import re
@@ -585,8 +585,8 @@ def diagnosis_param(wildcards):
 
 
 # ---------------------------------------------------------------------------------------------
-# Snakemake's scheduler keeps at most one pending re-evaluation timer (less CPU for Snakemake
-# itself on long runs; results do not depend on it). It replaces a private Snakemake method, so it
+# The scheduler patch makes Snakemake's scheduler keep at most one pending re-evaluation timer
+# (less CPU for Snakemake itself on long runs; results do not depend on it). It replaces a private Snakemake method, so it
 # is applied only to the Snakemake it was written for (workflow/rules/scheduler_patch.py);
 # VLSFOREST_SCHEDULER_PATCH=0 switches it off.
 # ---------------------------------------------------------------------------------------------

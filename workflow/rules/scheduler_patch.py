@@ -43,14 +43,18 @@ def _schedule_reevalutation(self, delay: int) -> None:
 '''
 
 
+def _value(environ) -> str:
+    return (os.environ if environ is None else environ).get(ENV_VAR, "").strip().lower()
+
+
 def enabled(environ=None) -> bool:
-    """Whether the patch is wanted: unless :data:`ENV_VAR` is ``"0"``."""
-    return (os.environ if environ is None else environ).get(ENV_VAR, "") != "0"
+    """Whether the patch is wanted: unless :data:`ENV_VAR` is ``0`` (or ``false``, ``no``, ``off``)."""
+    return _value(environ) not in ("0", "false", "no", "off")
 
 
 def demanded(environ=None) -> bool:
-    """Whether :data:`ENV_VAR` asks for the patch explicitly (``"1"``)."""
-    return (os.environ if environ is None else environ).get(ENV_VAR, "") == "1"
+    """Whether :data:`ENV_VAR` asks for the patch explicitly (``1``, ``true``, ``yes`` or ``on``)."""
+    return _value(environ) in ("1", "true", "yes", "on")
 
 
 def compatible(scheduler_class=None) -> bool:

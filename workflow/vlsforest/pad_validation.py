@@ -85,7 +85,7 @@ def load_truth_geometries(forest_dir, plot: str, targets_only: bool = False):
     layouts = {p.name: p for p in layouts_from_settings(st_path)}
     if plot not in layouts:
         raise InputDataError(f"{st_path}: no plot {plot!r} (plots: {sorted(layouts)})")
-    trees = read_csv_table(tr_path, "tree table", ("plot",), ids=("tree_id",))
+    trees = read_csv_table(tr_path, "tree table", ("plot", "target", "x", "y", "crown_radius"), ids=("tree_id",))
     trees = trees[trees["plot"] == plot].reset_index(drop=True)
     layout = layouts[plot]
     if set(trees["tree_id"]) != {t.tree_id for t in layout.trees}:

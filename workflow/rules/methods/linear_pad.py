@@ -9,8 +9,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
+from vlsforest.io.csvfile import read_csv_table
 from vlsforest.voxels import ModelInputs, PadGrid, scaled_model
 
 
@@ -22,8 +22,8 @@ def linear_pad_model(inputs, a0=0.25, alpha=1.0, groups=None):
 def main(smk):
     with np.load(smk.input.crowns) as z:
         xyz, owner = z["xyz"], z["owner"]
-    t = pd.read_csv(smk.input.targets)
-    inputs = ModelInputs(xyz, owner, dict(zip(t.tree_id.astype(int), t.group.astype(str))),
+    t = read_csv_table(smk.input.targets, "targets table", ("group",), ids=("tree_id",))
+    inputs = ModelInputs(xyz, owner, dict(zip(t.tree_id.tolist(), t.group.astype(str))),
                          PadGrid.from_vox(smk.input.pad, smk.params.min_pulses), smk.params.seed,
                          smk.params.default_group)
     entry = {k: v for k, v in json.loads(smk.params.method).items() if k not in ("kind", "description")}

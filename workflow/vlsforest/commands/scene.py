@@ -123,10 +123,10 @@ def run(args) -> int:
         from vlsforest.scene import crown_points
         from vlsforest.io.npz import save_npz
 
-        targets = read_csv_table(args.targets, "targets table", ("tree_id",))
+        targets = read_csv_table(args.targets, "targets table", ids=("tree_id",))
         seg = read_las(args.segment / "segmented.laz", require=("tree_id",))
         stems = {}
-        for t in targets.tree_id.astype(int):
+        for t in targets.tree_id.tolist():
             f = args.stems / str(t) / "stem_points.laz"
             stems[t] = read_las(f, allow_empty=True).xyz
         xyz, owner = crown_points(seg.xyz, seg.attrs["tree_id"], stems)
@@ -137,7 +137,7 @@ def run(args) -> int:
         from vlsforest.scene import assemble_scene, export_helios
         from vlsforest.io.voxel_model import VoxelModel
 
-        targets = read_csv_table(args.targets, "targets table", ("tree_id",))
+        targets = read_csv_table(args.targets, "targets table", ids=("tree_id",))
         site = _json(args.site, "site description")
         model = VoxelModel.load(args.voxels)
         stems = {int(t): args.stems / str(int(t)) / "stem.obj" for t in targets.tree_id}

@@ -42,7 +42,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     """Execute ``vlsforest voxels``."""
-    from vlsforest.errors import ConfigError, InputDataError
+    from vlsforest.errors import ConfigError
     from vlsforest.io.voxel_model import load_crowns
     from vlsforest.voxels import ModelInputs, PadGrid, build_model
 

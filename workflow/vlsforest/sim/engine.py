@@ -705,11 +705,15 @@ def hit_offsets(pulses: dict, hits: dict) -> np.ndarray:
     Raises
     ------
     InputDataError
-        The pulses or hits are not in that order.
+        The pulses or hits are not in that order, or a hit names a pulse that is not stored.
     """
     if np.any(np.diff(pulses["slot"]) <= 0) or np.any(np.diff(hits["pulse"]) < 0):
         raise InputDataError("the stored pulses must be in ascending slot order and the hits grouped by pulse "
                              "in pulse order (as simulate and trace_hits give them)")
+    n = len(hits["pulse"])
+    if n and (int(hits["pulse"][0]) < 0 or int(hits["pulse"][-1]) >= len(pulses["slot"])):
+        raise InputDataError(f"the stored hits name pulses outside 0…{len(pulses['slot']) - 1} "
+                             "(the hits and pulses of different simulations?)")
     ptr = np.zeros(len(pulses["slot"]) + 1, dtype=np.int64)
     np.cumsum(np.bincount(hits["pulse"], minlength=len(pulses["slot"])), out=ptr[1:])
     return ptr
@@ -770,6 +774,8 @@ def redetect(scene_parts: dict, pulses: dict, hits: dict, survey, seed: int | No
     blocks = pulses["slot"] // job.block_slots
     if hit_ptr is None:
         hit_ptr = hit_offsets(pulses, hits)
+    elif len(hit_ptr) != len(pulses["slot"]) + 1 or (len(hit_ptr) and int(hit_ptr[-1]) != len(hits["pulse"])):
+        raise InputDataError("hit_ptr is not the hit_offsets of these pulses and hits")
     pts, n_ret = [], []
     ub, first = np.unique(blocks, return_index=True)
     for b, r0, r1 in zip(ub, first, np.r_[first[1:], len(blocks)]):
