@@ -586,9 +586,9 @@ def diagnosis_param(wildcards):
 
 # ---------------------------------------------------------------------------------------------
 # The scheduler patch makes Snakemake's scheduler keep at most one pending re-evaluation timer
-# (less CPU for Snakemake itself on long runs; results do not depend on it). It replaces a private Snakemake method, so it
-# is applied only to the Snakemake it was written for (workflow/rules/scheduler_patch.py);
-# VLSFOREST_SCHEDULER_PATCH=0 switches it off.
+# (less CPU for Snakemake itself on long runs; results do not depend on it). It replaces a
+# private Snakemake method, so it is applied only to the Snakemake it was written for
+# (workflow/rules/scheduler_patch.py); VLSFOREST_SCHEDULER_PATCH=0 switches it off.
 # ---------------------------------------------------------------------------------------------
 _scheduler_patch = load_module_file(
     "vlsforest_scheduler_patch", Path(workflow.basedir, "workflow", "rules", "scheduler_patch.py")
