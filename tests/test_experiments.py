@@ -122,6 +122,25 @@ def test_recording_detector_helios_rule_drops_isolated_echoes():
         assert rows["x4"][g]["mean_pct"] < rows["recording"][g]["mean_pct"]
 
 
+@pytest.mark.e2e
+def test_recording_detector_redetection_equals_a_full_simulation():
+    """A detector variant is detected on the recording's trace; the same physics with a
+    trace-side key restating the recording's value (its beam sampling) is simulated in full:
+    both give the same points and shares."""
+    from vlsforest.experiments.recording_detector import run_recording_detector
+    from vlsforest.synth.record import DEFAULT_RECORDING_PHYSICS
+
+    quality = DEFAULT_RECORDING_PHYSICS["uls"]["beam_sample_quality"]
+    cfg = {"forest": {"preset": "quick"}, "recordings": {"uls": {"cross_margin_m": 30, "repeats": 1}}}
+    x2 = {"detection_threshold": {"min_energy": 20000}}
+    res = run_recording_detector(cfg, "Q1", "uls", {"redetected": x2,
+                                                    "traced": dict(x2, beam_sample_quality=quality)})
+    rows = {r["name"]: r for r in res["variants"]}
+    assert rows["redetected"]["n_points"] == rows["traced"]["n_points"] != rows["recording"]["n_points"]
+    for t in res["trees"]:
+        assert t["shares_pct"]["redetected"] == t["shares_pct"]["traced"]
+
+
 def test_recording_detector_rejects_bad_variants():
     from vlsforest.experiments.recording_detector import run_recording_detector
 

@@ -16,6 +16,11 @@ Each variant replaces keys of the sensor's recording-physics block, e.g.
 truth object ids (wood and foliage), and its share is :func:`vlsforest.metrics.tree_metrics`'s
 ``multi_return_pct`` (pulses with more than one return among the pulses with a return on the
 tree), as for the reference clouds.
+
+Each flight is traced once: the recording and every variant made only of
+:data:`vlsforest.synth.record.DETECTION_CANDIDATES` are detected on that trace
+(:func:`vlsforest.sim.redetect`, the points a full simulation gives, bit for bit); a variant
+that changes the trace (beam, trajectory) is simulated on its own.
 """
 
 from __future__ import annotations
@@ -29,14 +34,15 @@ from vlsforest.domain.species import species_group
 from vlsforest.errors import ConfigError
 from vlsforest.io.las import PointCloud
 from vlsforest.metrics import tree_metrics
-from vlsforest.sim.engine import simulate
-from vlsforest.sim.survey import survey_from_dict
+from vlsforest.sim import beam_geometry, hit_offsets, redetect, simulate, survey_from_dict, trace_hits
 from vlsforest.synth.forest import generate_plot_trees, plot_layout
 from vlsforest.synth.record import (
     DEFAULT_RECORDING_PHYSICS,
+    DETECTION_CANDIDATES,
     airborne_survey,
     plot_scene,
     recording_region,
+    restyle_for,
     synth_settings,
     validate_recording_physics,
 )
@@ -111,27 +117,41 @@ def run_recording_detector(cfg: dict | None, plot: str, sensor: str, variants: d
     if not targets:
         raise ConfigError(f"plot {plot}: no target trees")
     region = recording_region(lay)  # as `vlsforest synth` records the plot
+    physics = {}
+    for name, keys in runs.items():
+        physics[name] = copy.deepcopy(base[sensor])
+        physics[name].update(copy.deepcopy(keys))
+    geometry = plot_scene(lay, geoms, "tls")  # one geometry and BVH, each variant's materials
+    scenes = {name: restyle_for(geometry, sensor, physics[name]) for name in runs}
+    flights = {name: airborne_survey(lay, sensor, st["recordings"][sensor], physics[name], seed) for name in runs}
+    per_tree = {name: {t: [] for t in targets} for name in runs}
+    n_points = dict.fromkeys(runs, 0)
+    for r, recorded in enumerate(flights["recording"]):
+        survey = survey_from_dict(recorded)
+        pulses, hits = trace_hits(scenes["recording"], survey, workers=1, region=region)
+        ptr, beam = hit_offsets(pulses, hits), beam_geometry(survey.scanner)
+        for name, keys in runs.items():
+            sv = survey_from_dict(flights[name][r])
+            if set(keys) <= DETECTION_CANDIDATES:
+                res = redetect(scenes[name].part_table(), pulses, hits, sv, beam=beam, hit_ptr=ptr)
+            else:
+                res = simulate(scenes[name], sv, workers=1, keep_pulses=False, region=region)
+            n_points[name] += len(res.points["xyz"])
+            for tid, v in _tree_shares(res.points, targets, geoms).items():
+                per_tree[name][tid].append(v)
+            del res
+        del pulses, hits, ptr
     shares, rows = {}, []
     for name, keys in runs.items():
-        phys = copy.deepcopy(base)
-        phys[sensor].update(copy.deepcopy(keys))
-        scene = plot_scene(lay, geoms, sensor, phys[sensor])
-        per_tree = {t: [] for t in targets}
-        n_points = 0
-        for sv in airborne_survey(lay, sensor, st["recordings"][sensor], phys[sensor], seed):
-            res = simulate(scene, survey_from_dict(sv), workers=1, keep_pulses=False, region=region)
-            n_points += len(res.points["xyz"])
-            for tid, v in _tree_shares(res.points, targets, geoms).items():
-                per_tree[tid].append(v)
         # the repeats of a survey are separate flights: a tree's share over all of them
         shares[name] = {t: (float(np.nanmean(v)) if np.isfinite(v).any() else math.nan)
-                        for t, v in per_tree.items()}
+                        for t, v in per_tree[name].items()}
         groups = {}
         for g in ("conifer", "broadleaf"):
             vals = [shares[name][t] for t in targets
                     if species_group(geoms[t].species, default="other") == g and np.isfinite(shares[name][t])]
             groups[g] = {"mean_pct": float(np.mean(vals)) if vals else math.nan, "n": len(vals)}
-        rows.append({"name": name, "physics": keys, "n_points": int(n_points), **groups})
+        rows.append({"name": name, "physics": keys, "n_points": int(n_points[name]), **groups})
         if progress is not None:
             progress(f"{name}: conifer {groups['conifer']['mean_pct']:.1f} %, "
                      f"broadleaf {groups['broadleaf']['mean_pct']:.1f} %")

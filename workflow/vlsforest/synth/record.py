@@ -108,6 +108,11 @@ _CANDIDATES = {
     "peak_rule": {"physical"},
 }
 
+#: the candidates whose effect is detection alone (receiver, ranging noise, materials): a trace of
+#: a recording serves every variant made of them (:func:`vlsforest.sim.redetect`)
+DETECTION_CANDIDATES = frozenset({"detection_threshold", "waveform_window", "range_noise", "max_returns",
+                                  "peak_rule", "reflectance", "incidence_reflectance"})
+
 #: reflectance (fraction) at the scanner wavelengths: 1064 nm (ALS), 905 nm (ULS), 1550 nm (TLS)
 REFLECTANCE = {
     "als": {"foliage": 0.45, "wood": 0.35, "ground": 0.3},
