@@ -28,10 +28,12 @@ miss to that interval per job. The outputs do not depend on it.
 Usage::
 
     python benchmarks/bench_study.py [--workdir DIR] [--cores 2] [--configfile config/quick.yaml]
-                                     [--forceall] [--sample-interval 0.5] [--note TEXT]
+                                     [--forceall | --forcerun RULE …] [--sample-interval 0.5]
+                                     [--note TEXT]
 
 The run starts from what ``results/`` already holds; ``--forceall`` reruns every job (``rm -rf
-results logs .snakemake`` gives a fresh-clone run). The Snakemake is the one installed for this
+results logs .snakemake`` gives a fresh-clone run), ``--forcerun`` the named rules' jobs and
+those that depend on them (one rule measured on a finished study). The Snakemake is the one installed for this
 Python (``.venv/bin/snakemake``), and that folder goes first on ``PATH`` so that the jobs call
 the project's ``vlsforest``.
 """
@@ -131,6 +133,8 @@ def main(argv) -> int:
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--configfile", action="append", default=[], help="config file(s) over config/config.yaml")
     ap.add_argument("--forceall", action="store_true", help="rerun every job")
+    ap.add_argument("--forcerun", nargs="+", default=[], metavar="RULE",
+                    help="rerun these rules' jobs (and what depends on them)")
     ap.add_argument("--sample-interval", type=float, default=0.5,
                     help="seconds between Snakemake's samples of a job's CPU (0: Snakemake's own default)")
     ap.add_argument("--poll", type=float, default=0.25, help="seconds between reads of Snakemake's own CPU time")
@@ -142,6 +146,8 @@ def main(argv) -> int:
         cmd += ["--configfile", c]
     if args.forceall:
         cmd.append("--forceall")
+    if args.forcerun:
+        cmd += ["--forcerun", *args.forcerun]
     env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -172,7 +178,7 @@ def main(argv) -> int:
         else:
             print(f"  {name:28s} {r['jobs']:4d} jobs (no benchmark file)")
     row = dict(workdir=str(args.workdir), configfiles=args.configfile, cores=args.cores,
-               forceall=args.forceall, sample_interval_s=args.sample_interval,
+               forceall=args.forceall, forcerun=args.forcerun, sample_interval_s=args.sample_interval,
                wall_s=round(wall, 1), cpu_s=round(cpu, 1), snakemake_cpu_s=round(own, 1),
                jobs_cpu_s=round(cpu - own, 1), max_rss_mb=round(after.ru_maxrss / 1024.0, 1), jobs=jobs,
                rules=rules, cpu_s_outside_benchmarked_rules=round(cpu - inside, 1),

@@ -345,6 +345,21 @@ TABLE_CASES = [
     ("scene_crowns_ids_not_integers", "scene",
      ["scene", "crowns", "{ws}", "--stems", "{ws}", "--targets", "{table}", "-o", "{out}"],
      "tree_id\n7\n\n8.5\n", "'tree_id' that are not integers"),
+    ("stems_targets_ids_not_integers", "stems",
+     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
+     "tree_id,x,y,z\n7.5,0,0,0\n", "'tree_id' that are not integers"),
+    ("stems_targets_position_not_finite", "stems",
+     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
+     "tree_id,x,y,z\n7,nan,0,0\n", "column 'x' that are not finite numbers"),
+    ("stems_targets_dbh_not_a_number", "stems",
+     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
+     "tree_id,x,y,z,dbh\n7,0,0,0,thick\n", "column 'dbh' that are not numbers"),
+    ("stems_scans_ids_not_integers", "stems",
+     ["stems", "--segment", "{ws}", "--targets", "{ws}/targets.csv", "--scans", "{table}", "-o", "{out}"],
+     "scan_id,x,y,z\n1.5,0,0,1.5\n", "'scan_id' that are not integers"),
+    ("stems_scans_position_not_finite", "stems",
+     ["stems", "--segment", "{ws}", "--targets", "{ws}/targets.csv", "--scans", "{table}", "-o", "{out}"],
+     "scan_id,x,y,z\n1,0,inf,1.5\n", "column 'y' that are not finite numbers"),
 ]
 
 
@@ -352,7 +367,10 @@ TABLE_CASES = [
 def test_bad_table_is_one_line_naming_the_file(ws, tmp_path, capsys, case, stage, argv, text, needle):
     table, out = tmp_path / "table.csv", tmp_path / ("out.laz" if stage == "extract" else "out.npz")
     table.write_text(text)
-    names = {"table": table, "out": out, "cloud": ws / "cloud.las", "crowns": ws / "crowns.npz", "ws": ws}
+    scans = tmp_path / "scans.csv"
+    scans.write_text("scan_id,x,y,z\n1,0,0,1.5\n")
+    names = {"table": table, "out": out, "cloud": ws / "cloud.las", "crowns": ws / "crowns.npz", "ws": ws,
+             "scans": scans}
     rc = main([a.format(**names) for a in argv])
     _check(rc, capsys.readouterr().err, stage, [table, needle], [out])
 

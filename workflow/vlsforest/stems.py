@@ -756,16 +756,11 @@ def read_scanner_positions(path) -> dict:
     from vlsforest.io.csvfile import read_csv_table
 
     path = Path(path)
-    df = read_csv_table(path, "scan table", ("scan_id", "x", "y", "z"))
+    df = read_csv_table(path, "scan table", ids=("scan_id",), numbers=("x", "y", "z"))
     if df.empty:
         raise InputDataError(f"{path}: no scans listed")
-    try:
-        ids = df["scan_id"].to_numpy(dtype=np.float64)
-        pos = df[["x", "y", "z"]].to_numpy(dtype=np.float64)
-    except (ValueError, TypeError):
-        raise InputDataError(f"{path}: scan_id, x, y, z must be numbers") from None
-    if not (np.isfinite(ids).all() and np.isfinite(pos).all()) or np.any(ids != np.round(ids)):
-        raise InputDataError(f"{path}: scan_id must be whole numbers and x, y, z finite")
+    ids = df["scan_id"].to_numpy()
+    pos = df[["x", "y", "z"]].to_numpy()
     if len(np.unique(ids)) != len(ids):
         raise InputDataError(f"{path}: duplicate scan_id values")
     return {int(i): pos[n] for n, i in enumerate(ids)}

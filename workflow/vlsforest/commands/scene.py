@@ -98,7 +98,8 @@ def run(args) -> int:
     if args.what == "targets":
         from vlsforest.extract import match_targets
 
-        trees = read_csv_table(args.segment / "trees.csv", "tree table", ("tree_id", "x", "y", "z"))
+        trees = read_csv_table(args.segment / "trees.csv", "tree table", ids=("tree_id",),
+                               numbers=("x", "y", "z"))
         info = _json(args.plot_json, "plot description")
         if not isinstance(info, dict) or not info.get("targets"):
             raise InputDataError(f"{args.plot_json}: needs a non-empty 'targets' list")

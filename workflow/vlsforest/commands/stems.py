@@ -177,22 +177,23 @@ def run(args) -> int:
 
 
 def _run_plot(args, cfg: dict, scanners: dict) -> int:
+    import pandas as pd
+
     from vlsforest.io.csvfile import read_csv_table
 
     path = Path(args.targets)
-    targets = read_csv_table(path, "targets table", ("tree_id", "x", "y", "z"))
+    targets = read_csv_table(path, "targets table", ids=("tree_id",), numbers=("x", "y", "z"))
     if targets.empty:
         raise InputDataError(f"{path}: no targets listed")
-    try:
-        ids = targets["tree_id"].to_numpy(dtype=np.float64)
-        base = targets[["x", "y", "z"]].to_numpy(dtype=np.float64)
-        dbh = targets["dbh"].to_numpy(dtype=np.float64) if "dbh" in targets.columns else np.full(len(ids), np.nan)
-    except (TypeError, ValueError):
-        raise InputDataError(f"{path}: tree_id, x, y, z, dbh must be numbers") from None
-    if not np.isfinite(ids).all() or np.any(ids != np.round(ids)) or not np.isfinite(base).all():
-        raise InputDataError(f"{path}: tree_id must be whole numbers and x, y, z finite")
+    ids = targets["tree_id"].to_numpy()
+    base = targets[["x", "y", "z"]].to_numpy()
+    dbh = np.full(len(ids), np.nan)  # an optional DBH guides the stem fit; an empty cell leaves it to the points
+    if "dbh" in targets.columns:
+        dbh = pd.to_numeric(targets["dbh"], errors="coerce").to_numpy(np.float64)
+        if np.any(np.isnan(dbh) & targets["dbh"].notna().to_numpy()):
+            raise InputDataError(f"{path}: targets table has values in column 'dbh' that are not numbers")
     out = Path(args.output)
-    for tid, b, d in zip(ids.astype(np.int64), base, dbh):
+    for tid, b, d in zip(ids, base, dbh):
         d = float(d) if math.isfinite(d) and d > 0 else None
         s = _one_tree(Path(args.segment) / "trees" / f"{tid}.laz", args.scans, scanners, b, d, cfg, out / str(tid))
         print(

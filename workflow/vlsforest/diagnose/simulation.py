@@ -106,7 +106,7 @@ class PlotSim:
         seg = Path(p.segment)
         if not (seg / "trees.csv").is_file():
             raise InputDataError(f"{seg}: no trees.csv (a 'vlsforest segment' output folder is needed)")
-        stems = read_csv_table(seg / "trees.csv", "tree table", ("x", "y", "z"), ids=("tree_id",))
+        stems = read_csv_table(seg / "trees.csv", "tree table", ids=("tree_id",), numbers=("x", "y", "z"))
         pts = {}
         for tid in stems.tree_id.tolist():
             f = seg / "trees" / f"{tid}.laz"

@@ -16,7 +16,7 @@ from vlsforest.errors import InputDataError
 __all__ = ["read_csv_table", "read_height_table"]
 
 
-def read_csv_table(path, what: str = "CSV file", columns=(), ids=()):
+def read_csv_table(path, what: str = "CSV file", columns=(), ids=(), numbers=()):
     """Read a CSV file with a header row.
 
     Parameters
@@ -30,31 +30,35 @@ def read_csv_table(path, what: str = "CSV file", columns=(), ids=()):
     ids : iterable of str
         Further columns it must have that hold integer ids (tree or target ids); they are
         returned as int64.
+    numbers : iterable of str
+        Further columns it must have that hold finite numbers (coordinates, heights); they are
+        returned as float64.
 
     Returns
     -------
     pandas.DataFrame
-        The table as ``pandas.read_csv`` reads it, ``ids`` as int64.
+        The table as ``pandas.read_csv`` reads it, ``ids`` as int64, ``numbers`` as float64.
 
     Raises
     ------
     InputDataError
         The file does not exist (or is not a file), pandas cannot read it (its reason, on one
         line), it lacks one of ``columns`` or ``ids`` (naming those it lacks), or a value of
-        ``ids`` is not an integer (naming the column); the message starts with the path.
+        ``ids`` is not an integer or a value of ``numbers`` not a finite number (naming the
+        column); the message starts with the path.
     """
     import numpy as np
     import pandas as pd
 
     path = Path(path)
-    ids = tuple(ids)
+    ids, numbers = tuple(ids), tuple(numbers)
     if not path.is_file():
         raise InputDataError(f"{path}: no such {what}")
     try:
         df = pd.read_csv(path)
     except Exception as exc:  # pandas raises parser, decoding and OS errors alike
         raise InputDataError(f"{path}: not a readable CSV ({' '.join(str(exc).split())})") from None
-    missing = (set(columns) | set(ids)) - set(df.columns)
+    missing = (set(columns) | set(ids) | set(numbers)) - set(df.columns)
     if missing:
         raise InputDataError(f"{path}: {what} lacks column(s) {sorted(missing)}")
     for col in ids:
@@ -62,6 +66,11 @@ def read_csv_table(path, what: str = "CSV file", columns=(), ids=()):
         if not (np.isfinite(v).all() and (v == np.round(v)).all()):
             raise InputDataError(f"{path}: {what} has ids in column {col!r} that are not integers")
         df[col] = v.astype(np.int64)
+    for col in numbers:
+        v = pd.to_numeric(df[col], errors="coerce").to_numpy(np.float64)
+        if not np.isfinite(v).all():
+            raise InputDataError(f"{path}: {what} has values in column {col!r} that are not finite numbers")
+        df[col] = v
     return df
 
 
@@ -90,12 +99,4 @@ def read_height_table(path, what: str, ids=(), columns=()):
         As :func:`read_csv_table`, and when a ``z`` is not a finite number or an id not an
         integer (naming the column).
     """
-    import numpy as np
-    import pandas as pd
-
-    df = read_csv_table(path, what, (*columns, "z"), ids)
-    z = pd.to_numeric(df["z"], errors="coerce").to_numpy(np.float64)
-    if not np.isfinite(z).all():
-        raise InputDataError(f"{path}: {what} has ground heights in column 'z' that are not finite numbers")
-    df["z"] = z
-    return df
+    return read_csv_table(path, what, columns, ids, numbers=("z",))
