@@ -504,13 +504,13 @@ def test_a_stages_traces_go_to_disk_and_are_read_back_instead_of_traced_again(mo
     ps = _bare_plot_sim(tmp_path, spill)
     ps.pin({})
     ps.keep([div(2.0), div(3.0)])  # a stage's signatures, not the last stage
-    first = {k: dict(v) for k, v in zip(("pulses", "hits"), ps.trace(div(2.0)))}
+    first = {k: dict(v) for k, v in zip(("pulses", "hits"), ps.trace(div(2.0))[1:])}
     ps.trace(div(3.0))   # div 2 leaves memory: to disk
     ps.trace(div(4.0))   # div 3 leaves memory: to disk (div 4 is no signature)
     assert ps.n_traced == 3 and len(list(spill.iterdir())) == 2
     ps.keep([div(2.0), div(5.0)], spill=False)  # the last stage: div 3 is not needed again
     assert len(list(spill.iterdir())) == 1
-    again = ps.trace(div(2.0))
+    again = ps.trace(div(2.0))[1:]
     assert ps.n_traced == 3 and ps.n_loaded == 1
     for name, arrays in zip(("pulses", "hits"), again):
         assert list(arrays) == list(first[name])
@@ -613,7 +613,7 @@ def test_tracing_only_the_observed_region_gives_the_observables_of_a_wider_trace
         assert ps.setting({})[1].scanner.detector.range_noise_m == 0
         # its trajectory-noise realisation is its own, not the survey file's (the recording's)
         assert ps.survey["seed"] == own_realisation(survey, 0)["seed"]
-        pulses, _ = ps.trace({})
+        _, pulses, _ = ps.trace({})
         sims[margin] = (ps.region, len(pulses["slot"]), ps.features({}))
     (r0, n0, f0), (r1, n1, f1) = sims[0.0], sims[15.0]
     assert r1[0] == pytest.approx(r0[0] - 15) and r1[3] == pytest.approx(r0[3] + 15)

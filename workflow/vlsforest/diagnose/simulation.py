@@ -186,7 +186,7 @@ class PlotSim:
         return json.dumps([repr(sv.scanner), rest, edits], sort_keys=True, default=str), sv, edits
 
     def trace(self, trace_part: dict):
-        """The pulses with hits and their hits for the trace-side parameters ``trace_part``.
+        """The key, the pulses with hits and their hits for the trace-side parameters ``trace_part``.
 
         The search renders every stored-hit candidate on its baseline's trace and visits
         trace-side values one after the other (their features are cached separately); the cache
@@ -196,9 +196,10 @@ class PlotSim:
         from vlsforest.sim import trace_hits
 
         key, sv, edits = self.setting(trace_part)
-        return self.traces.get(key, lambda: trace_hits(self._scene_for(edits), sv, seed=self.seed,
-                                                       workers=self.workers, region=self.region),
-                               json.dumps(trace_part))
+        pulses, hits = self.traces.get(key, lambda: trace_hits(self._scene_for(edits), sv, seed=self.seed,
+                                                               workers=self.workers, region=self.region),
+                                       json.dumps(trace_part))
+        return key, pulses, hits
 
     def keep(self, assigns: list, spill: bool = True) -> None:
         """The traces of ``assigns`` are this stage's: traces on disk that are not are deleted,
@@ -223,13 +224,12 @@ class PlotSim:
 
         key, sv, edits = self.setting(assign)
         if key not in self._sims:
-            pulses, hits = self.trace(trace_part(assign))
+            tkey, pulses, hits = self.trace(trace_part(assign))
             parts = dict(self.parts,
                          reflectance=np.clip(self.parts["reflectance"] * edits["reflectance_scale"], 0, 1))
             if "specularity" in edits:
                 parts["specularity"] = np.full(len(parts["specularity"]), edits["specularity"])
                 parts["shininess"] = np.full(len(parts["shininess"]), lib.SHININESS)
-            tkey = self.trace_key(assign)
             if self._offsets[0] != tkey:  # the hits' index, kept for the trace rendered last
                 self._offsets = (tkey, hit_offsets(pulses, hits))
             res = redetect(parts, pulses, hits, sv, seed=self.seed, hit_ptr=self._offsets[1])
