@@ -325,6 +325,8 @@ def test_metrics_with_no_listed_tree_in_the_cloud(ws, tmp_path, capsys):
     _check(rc, capsys.readouterr().err, "metrics", ["401", "402"], [out])
 
 
+STEMS_ARGV_TARGETS = ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"]
+STEMS_ARGV_SCANS = ["stems", "--segment", "{ws}", "--targets", "{ws}/targets.csv", "--scans", "{table}", "-o", "{out}"]
 TABLE_CASES = [
     # (case, stage, argv with {table} for the spoilt table, table text, needle)
     ("extract_ids_not_integers", "extract", ["extract", "sim", "{cloud}", "--targets", "{table}", "-o", "{out}"],
@@ -345,21 +347,13 @@ TABLE_CASES = [
     ("scene_crowns_ids_not_integers", "scene",
      ["scene", "crowns", "{ws}", "--stems", "{ws}", "--targets", "{table}", "-o", "{out}"],
      "tree_id\n7\n\n8.5\n", "'tree_id' that are not integers"),
-    ("stems_targets_ids_not_integers", "stems",
-     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
-     "tree_id,x,y,z\n7.5,0,0,0\n", "'tree_id' that are not integers"),
-    ("stems_targets_position_not_finite", "stems",
-     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
-     "tree_id,x,y,z\n7,nan,0,0\n", "column 'x' that are not finite numbers"),
-    ("stems_targets_dbh_not_a_number", "stems",
-     ["stems", "--segment", "{ws}", "--targets", "{table}", "--scans", "{scans}", "-o", "{out}"],
-     "tree_id,x,y,z,dbh\n7,0,0,0,thick\n", "column 'dbh' that are not numbers"),
-    ("stems_scans_ids_not_integers", "stems",
-     ["stems", "--segment", "{ws}", "--targets", "{ws}/targets.csv", "--scans", "{table}", "-o", "{out}"],
-     "scan_id,x,y,z\n1.5,0,0,1.5\n", "'scan_id' that are not integers"),
-    ("stems_scans_position_not_finite", "stems",
-     ["stems", "--segment", "{ws}", "--targets", "{ws}/targets.csv", "--scans", "{table}", "-o", "{out}"],
-     "scan_id,x,y,z\n1,0,inf,1.5\n", "column 'y' that are not finite numbers"),
+    *[(f"stems_targets_{case}", "stems", STEMS_ARGV_TARGETS, text, needle) for case, text, needle in (
+        ("ids_not_integers", "tree_id,x,y,z\n7.5,0,0,0\n", "'tree_id' that are not integers"),
+        ("position_not_finite", "tree_id,x,y,z\n7,nan,0,0\n", "column 'x' that are not finite numbers"),
+        ("dbh_not_a_number", "tree_id,x,y,z,dbh\n7,0,0,0,thick\n", "column 'dbh' that are not numbers"))],
+    *[(f"stems_scans_{case}", "stems", STEMS_ARGV_SCANS, text, needle) for case, text, needle in (
+        ("ids_not_integers", "scan_id,x,y,z\n1.5,0,0,1.5\n", "'scan_id' that are not integers"),
+        ("position_not_finite", "scan_id,x,y,z\n1,0,inf,1.5\n", "column 'y' that are not finite numbers"))],
 ]
 
 
