@@ -343,6 +343,56 @@ def test_shift_room_relates_each_trees_cubes_to_its_change(tmp_path):
         run_shift_room(man, "s", "r", ["uls"], ["multi_return_pct"])
 
 
+def test_cog_shift_carries_the_returns_with_their_cubes(tmp_path):
+    """The returns on the top cubes move down with them: the predicted Hmean change is their
+    displacement times their share of the returns; returns off the cubes (a stem far off) stay;
+    the columns' top cubes and all cubes give the crown's own displacement."""
+    from vlsforest.experiments.cog_shift import carried_returns, run_cog_shift
+    from vlsforest.io.las import PointCloud, write_las
+    from vlsforest.io.voxel_model import VoxelModel
+
+    d = tmp_path / "P1"
+    d.mkdir()
+    (d / "targets.csv").write_text("target_id,tree_id,group,z\n11,1,conifer,0\n")
+    ijk = np.array([[i, j, k] for i in range(3) for j in range(3) for k in range(40, 44)])
+    base = VoxelModel(0.25, ijk, np.ones(len(ijk), int), half=np.full(len(ijk), 0.05))
+    centre = base.centres().copy()
+    top = ijk[:, 2] == 43
+    centre[top, 2] -= 0.03
+    VoxelModel(0.25, ijk, base.owner, half=base.half, centre=centre).save(d / "cog.npz")
+    base.save(d / "base.npz")
+    c = base.centres()
+    on_top = c[top] + [0.0, 0.0, 0.05]                    # 9 returns on the top cubes' top faces
+    on_side = c[~top][:9] + [0.05, 0.0, 0.0]             # 9 on lower cubes' sides
+    off = np.array([[5.0, 5.0, 10.5]] * 2)               # 2 on no cube
+    xyz = np.concatenate([on_top, on_side, off])
+    write_las(d / "trees.laz", PointCloud(xyz, {"tree_id": np.full(len(xyz), 11, np.int32)}))
+    for name, h in (("a", 10.0), ("b", 9.9)):
+        (d / f"{name}.csv").write_text("tree_id,hmean,height,cpa,multi_return_pct\n" f"11,{h},11,1.0,50\n")
+    man = {"P1": {"targets": str(d / "targets.csv"),
+                  "methods": {"s": {"voxels": str(d / "base.npz"), "trees": {"als": str(d / "trees.laz")},
+                                    "metrics": {"als": str(d / "a.csv")}},
+                              "c": {"voxels": str(d / "cog.npz"), "metrics": {"als": str(d / "b.csv")}}}}}
+    moved, on = carried_returns(xyz, base, VoxelModel.load(d / "cog.npz"))
+    assert on.tolist() == [True] * 18 + [False] * 2
+    assert np.allclose(moved - xyz, np.r_[np.tile([0, 0, -0.03], (9, 1)), np.zeros((11, 3))])
+    res = run_cog_shift(man, "s", "c", ["als"])
+    tree = res["trees"][0]
+    assert tree["surface_dz_m"] == pytest.approx(-0.03) and tree["all_cubes_dz_m"] == pytest.approx(-0.03 / 4)
+    rec = tree["scenarios"]["als"]
+    assert rec["on_cubes"] == pytest.approx(0.9)
+    assert rec["predicted"]["hmean"] == pytest.approx(-0.03 * 9 / 20)
+    assert rec["predicted"]["height"] == pytest.approx(-0.03)  # the highest returns lie on the top cubes
+    assert rec["simulated"]["hmean"] == pytest.approx(-0.1) and rec["simulated"]["height"] == 0.0
+    assert "predicted" not in res["summary"]["als"]["multi_return_pct"]
+    with pytest.raises(ConfigError, match="differ"):
+        run_cog_shift(man, "s", "s", ["als"])
+    man["P1"]["methods"]["c"]["voxels"] = str(d / "other.npz")
+    VoxelModel(0.25, ijk[:-1], base.owner[:-1], half=base.half[:-1]).save(d / "other.npz")
+    with pytest.raises(ConfigError, match="same cells"):
+        run_cog_shift(man, "s", "c", ["als"])
+
+
 def test_cli_run_experiments_refuse_bad_inputs_in_one_line(tmp_path, capsys):
     from vlsforest.cli import main
 
@@ -354,6 +404,8 @@ def test_cli_run_experiments_refuse_bad_inputs_in_one_line(tmp_path, capsys):
           "--methods", "m", "--scenarios", "als"], "none.csv"),
         (["shift-room", "--inputs-json", '{"P1": {"targets": "t.csv"}}', "--base", "a", "--shifted", "a",
           "--scenarios", "als"], "differ"),
+        (["cog-shift", "--inputs-json", '{"P1": {"targets": "t.csv"}}', "--base", "a", "--shifted", "b",
+          "--scenarios", "als", "--margin", "-1"], "margin_m"),
     ):
         assert main(["experiment", *argv, "-o", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()

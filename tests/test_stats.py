@@ -636,6 +636,41 @@ def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
     assert f["F4"]["cause"].startswith("not established")
 
 
+def _cog_shift_experiment(predicted):
+    """A CoG-shift result whose parts predict ``predicted[(scenario, metric)] = (mean, se)`` over 20 trees."""
+    summary = {sc: {k: {"simulated": {"mean": 0.01, "se": 0.01, "n": 20}} for k in
+                    ("hmean", "height", "cpa", "multi_return_pct")} for sc in ("als", "uls")}
+    for (sc, k), (mean, se) in predicted.items():
+        summary[sc][k]["predicted"] = {"mean": mean, "se": se, "n": 20}
+    return {"summary": summary, "trees": [{"plot": "P1", "tree_id": t} for t in range(20)],
+            "surface": {"mean": -0.02, "se": 0.002, "n": 20}, "all_cubes": {"mean": 0.0, "se": 0.001, "n": 20}}
+
+
+def test_f4_cause_from_the_cubes_the_returns_lie_on():
+    """A part whose predicted change is not below zero (its 95 % interval reaches 0) is explained by
+    the cubes its returns lie on; one predicted clearly lower is not; the multiple-return share has
+    no prediction."""
+    m, vc, tt = study_like(flip=True)  # every part of F4 disagrees
+    pred = {("als", "hmean"): (-0.001, 0.002), ("uls", "hmean"): (-0.02, 0.002), ("als", "height"): (0.01, 0.02),
+            ("uls", "height"): (0.0, 0.0), ("als", "cpa"): (-0.5, 0.05)}
+    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred)})
+    cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
+    assert cause.startswith("the cubes the returns come from")
+    explained, rest = cause.split("not established for")
+    assert all(p in explained for p in ("als hmean", "als height"))
+    # a prediction without spread (se 0) over 20 trees: its interval is the point 0, not below zero
+    assert "uls height" in explained
+    assert all(p in rest for p in ("uls hmean", "als cpa", "uls cpa", "als multi_return_pct", "uls multi_return_pct"))
+    assert "CoG-shift experiment (20 target trees" in exp and "top cubes move -2.0 cm vertically" in exp
+    assert "uls hmean predicted -0.020 m (95 % CI -0.024 to -0.016), simulated +0.010 m" in exp
+    assert "TLS angular-step" not in exp
+    # with the step experiment too: its text follows, and it explains what the cubes leave
+    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred), **_cog_experiment()})
+    cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
+    assert exp.index("CoG-shift experiment") < exp.index("TLS angular-step experiment")
+    assert "the TLS angular step: " in cause and "uls hmean" in cause.split("the TLS angular step: ")[1]
+
+
 def _outline_summary(outline, unseen, base):
     part = {"error": {"mean": outline + unseen + base}, "outline": {"mean": outline}, "unseen": {"mean": unseen},
             "base": {"mean": base}, "reference_m2": 40.0}

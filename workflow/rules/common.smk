@@ -388,19 +388,29 @@ def crown_outline_methods():
     return [m for m in METHODS if config["methods"][m]["kind"] == "fixed"] + unshifted_scaled_methods()
 
 
-def shift_room_methods():
-    """The unshifted scaled method and its random-shift variant the shift-room experiment compares:
-    ``experiments.shift_room.base`` / ``shifted``, else the first of each kind configured."""
+def shift_pair(experiment, shift):
+    """The unshifted scaled method and its ``shift`` variant that ``experiment`` compares:
+    ``experiments.<experiment>.base`` / ``shifted``, else the first of each kind configured."""
     ms = config["methods"]
-    base = experiment_setting("shift_room", "base") or (unshifted_scaled_methods() or [None])[0]
-    shifted = experiment_setting("shift_room", "shifted") or next(
-        (m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift") == "random"), None)
+    base = experiment_setting(experiment, "base") or (unshifted_scaled_methods() or [None])[0]
+    shifted = experiment_setting(experiment, "shifted") or next(
+        (m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift") == shift), None)
     for key, m in (("base", base), ("shifted", shifted)):
         if m is None or m not in METHODS:
-            raise WorkflowError(f"Invalid configuration at 'experiments.shift_room.{key}': "
+            raise WorkflowError(f"Invalid configuration at 'experiments.{experiment}.{key}': "
                                 + (f"{m!r} is not a configured method" if m else
                                    "no such scaled method is configured"))
     return base, shifted
+
+
+def shift_room_methods():
+    """The unshifted scaled method and its random-shift variant (the shift-room experiment)."""
+    return shift_pair("shift_room", "random")
+
+
+def cog_shift_methods():
+    """The unshifted scaled method and its CoG-shift variant (the CoG-shift experiment)."""
+    return shift_pair("cog_shift", "cog")
 
 
 def enabled_experiments():

@@ -108,3 +108,31 @@ rule experiment_shift_room:
     shell:
         "vlsforest experiment shift-room --inputs-json {params.inputs:q} --base {params.base} "
         "--shifted {params.shifted} --scenarios {params.scenarios} -o {output} > {log} 2>&1"
+
+
+rule experiment_cog_shift:
+    # predicts the CoG shift's changes from the cubes the run's returns lie on (no simulation)
+    input:
+        lambda wildcards: manifest_paths(run_outputs_manifest(cog_shift_methods()),
+                                         keep=lambda key: key in ("targets", "voxels", "metrics"))
+        + manifest_paths(run_outputs_manifest(cog_shift_methods()[:1]), keep=lambda key: key == "trees"),
+    output:
+        "results/experiments/cog_shift.json",
+    log:
+        "logs/experiments/cog_shift.log",
+    benchmark:
+        "logs/benchmarks/experiments/cog_shift.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        inputs=lambda wildcards: json.dumps(run_outputs_manifest(cog_shift_methods()), sort_keys=True),
+        base=lambda wildcards: cog_shift_methods()[0],
+        shifted=lambda wildcards: cog_shift_methods()[1],
+        scenarios=" ".join(SCENARIOS),
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment cog-shift --inputs-json {params.inputs:q} --base {params.base} "
+        "--shifted {params.shifted} --scenarios {params.scenarios} -o {output} > {log} 2>&1"

@@ -15,8 +15,12 @@ model's own crown base and the part the simulation sees of it
 (:func:`vlsforest.experiments.crown_outline.run_crown_outline`).
 ``vlsforest experiment shift-room --inputs-json JSON --base scaled --shifted scaled_random_shift
 --scenarios als uls -o shift_room.json`` relates each target tree's cube size to what the random
-shift changes (:func:`vlsforest.experiments.shift_room.run_shift_room`). ``--inputs-json`` names
-the run's files (:mod:`vlsforest.experiments.run_outputs`).
+shift changes (:func:`vlsforest.experiments.shift_room.run_shift_room`).
+``vlsforest experiment cog-shift --inputs-json JSON --base scaled --shifted scaled_cog_shift
+--scenarios als uls -o cog_shift.json`` predicts each target tree's change under the CoG shift from
+the cubes its returns lie on and sets it beside the simulated change
+(:func:`vlsforest.experiments.cog_shift.run_cog_shift`). ``--inputs-json`` names the run's files
+(:mod:`vlsforest.experiments.run_outputs`).
 
 Same config and seed give the same bytes.
 """
@@ -80,6 +84,18 @@ def register(subparsers) -> argparse.ArgumentParser:
     h.add_argument("--metrics", nargs="+", default=["hmean", "multi_return_pct", "cbh", "cpa"], metavar="METRIC",
                    help="metrics whose change is related to the cube size (default: the study's finding's four)")
     _result_file(h)
+    g = sub.add_parser("cog-shift", help="what the CoG shift does to the cubes the returns come from",
+                       description="Carry each return of the unshifted scaled model's simulation along with the "
+                                   "cube it lies on to the CoG-shifted cubes, and set the change of Hmean, height "
+                                   "and CPA this predicts beside the simulated change, over the trees of a "
+                                   "finished run.")
+    g.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
+    g.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
+    g.add_argument("--shifted", required=True, metavar="METHOD", help="its CoG-shift variant")
+    g.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
+    g.add_argument("--margin", type=float, default=0.05, metavar="M",
+                   help="a return lies on a cube within this distance (m) of it (default 0.05: the range noise)")
+    _result_file(g)
     return p
 
 
@@ -118,7 +134,7 @@ def run(args) -> int:
     """Execute ``vlsforest experiment`` with parsed ``args``; return 0."""
     from vlsforest.io.atomic import write_text
 
-    if args.experiment in ("crown-outline", "shift-room"):
+    if args.experiment in ("crown-outline", "shift-room", "cog-shift"):
         return _run_on_outputs(args, write_text)
     cfg = _json_object(args.config_json, "--config-json")
     seed = cfg.get("seed", 0)
@@ -151,7 +167,8 @@ def run(args) -> int:
 
 
 def _run_on_outputs(args, write_text) -> int:
-    """The experiments that take a finished run's files apart (``crown-outline``, ``shift-room``)."""
+    """The experiments that take a finished run's files apart (``crown-outline``, ``shift-room``,
+    ``cog-shift``)."""
     manifest = _json_object(args.inputs_json, "--inputs-json")
     if args.experiment == "crown-outline":
         from vlsforest.experiments.crown_outline import run_crown_outline
@@ -162,6 +179,17 @@ def _run_on_outputs(args, write_text) -> int:
             for sc, v in per.items():
                 print(f"vlsforest experiment crown-outline: {m} {sc}: CPA error {v['error']['mean']:+.2f} m² = "
                       + " ".join(f"{k} {v[k]['mean']:+.2f}" for k in ("outline", "unseen", "base")))
+        return 0
+    if args.experiment == "cog-shift":
+        from vlsforest.experiments.cog_shift import run_cog_shift
+
+        res = run_cog_shift(manifest, args.base, args.shifted, args.scenarios, margin_m=args.margin,
+                            progress=_log("cog-shift"))
+        write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+        for sc, per in res["summary"].items():
+            for k, v in per.items():
+                pred = f"predicted {v['predicted']['mean']:+.3f}, " if "predicted" in v else ""
+                print(f"vlsforest experiment cog-shift: {sc} {k}: {pred}simulated {v['simulated']['mean']:+.3f}")
         return 0
     from vlsforest.experiments.shift_room import run_shift_room
 

@@ -7,5 +7,13 @@ by ``vlsforest experiment <name>`` and by a workflow target (``workflow/rules/ex
 * :mod:`~vlsforest.experiments.tls_step` — the TLS angular step and the 0.02 m / scaled voxel
   ratio (finding F2, Table 5's voxel rows);
 * :mod:`~vlsforest.experiments.recording_detector` — the recordings' detector and their
-  multiple-return share (finding D1, Table 5's penetration rows).
+  multiple-return share (finding D1, Table 5's penetration rows);
+* :mod:`~vlsforest.experiments.crown_outline` — where the CPA and CBH errors come from (finding
+  F1, Table 5's accuracy rows);
+* :mod:`~vlsforest.experiments.shift_room` — the scaled cubes' size and what the random shift
+  changes (finding F6);
+* :mod:`~vlsforest.experiments.cog_shift` — what the CoG shift does to the cubes the returns come
+  from (finding F4).
+
+The last three read a finished run's files (:mod:`~vlsforest.experiments.run_outputs`).
 """

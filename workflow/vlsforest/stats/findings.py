@@ -18,7 +18,8 @@ A finding that disagrees names its cause only where an experiment tests it:
   model is at the study's step, and the errors that predicts) and ``F3b`` (the fill of the fixed
   models per species group: whether their porosity contrast fades at the study's step) and ``F4``
   (the TLS points' centre of gravity in the 0.25 m cells at both steps: whether the CoG shift
-  lowers the cubes at the study's step);
+  lowers the cubes at the study's step); ``F4`` also takes the CoG-shift experiment
+  (:mod:`vlsforest.experiments.cog_shift`: the change the cubes the returns lie on predict);
 * ``F1`` and the Table 5 accuracy rows take the crown-outline experiment
   (:mod:`vlsforest.experiments.crown_outline`: each model's CPA error split into its own outline,
   what the simulation does not see and the crown base), ``F6`` the shift-room experiment
@@ -336,7 +337,8 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                     f4_missing.append(f"{sc} {metric}")
                 ev.append(f"{sc}: {metric} change CoG − scaled {e.text(_unit(metric))}: "
                           f"{'lower' if good else 'not lower'}")
-    cause, experiment = _cog_cause(experiments.get("tls_step"), f4_missing) if f4_missing else ("", "")
+    cause, experiment = (_cog_cause(experiments.get("tls_step"), experiments.get("cog_shift"), f4_missing)
+                         if f4_missing else ("", ""))
     out.append(_row("F4", "Shifting the scaled cubes to the centre of gravity lowers Hmean, the multiple-return "
                           "share, tree height and CPA slightly.", ok, ev,
                     "the 95 % CI of the mean change lies below zero; 'slightly' is not judged (the paper gives "
@@ -547,47 +549,85 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
             f"beyond the negligible effect"), text
 
 
-def _cog_cause(result, missing) -> tuple[str, str]:
-    """Cause and experiment of F4's disagreeing parts from the TLS points' centre of gravity in
-    the 0.25 m cells at the embedded forest's and the study's step.
+def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
+    """Cause and experiment of F4's disagreeing parts from the CoG-shift experiment and the TLS
+    points' centre of gravity in the 0.25 m cells at the embedded forest's and the study's step.
 
-    The proposed cause: at the study's finer step the points' centre of gravity lies lower in the
-    cells (and nearer the stem axis) than at ours, so that the CoG shift lowers the cubes (and
-    draws them in), lowering the heights (and the CPA). The experiment supports it for the height
-    parts (``hmean``, ``height``) when the vertical offset at the finest step lies below zero by
-    more than twice its standard error and below the coarsest step's by more than twice their
-    combined standard error; for ``cpa`` the same of the radial offset. The multiple-return
-    share has no such link: its parts stay unexplained.
+    Two proposed causes. (1) The cubes a part's returns lie on do not move down (``hmean``,
+    ``height``) or in (``cpa``): the CoG-shift experiment (:mod:`vlsforest.experiments.cog_shift`)
+    supports it where the change the carried returns predict is not below zero, i.e. the upper
+    end of its 95 % interval over the trees (t, n − 1 degrees of freedom) is ≥ 0. (2) The TLS
+    angular step: at the study's finer step the points' centre of gravity lies lower in the cells
+    (and nearer the stem axis) than at ours; the step experiment supports it for the height parts
+    when the vertical offset at the finest step lies below zero by more than twice its standard
+    error and below the coarsest step's by more than twice their combined standard error; for
+    ``cpa`` the same of the radial offset. The multiple-return share has no such link: its parts
+    stay unexplained.
     """
-    rows = _step_rows(result, "cog_offset")
-    if len(rows) < 2:
-        return _step_untested(" with centre-of-gravity offsets")
-    coarse_step, fine_step = max(rows), min(rows)
-    a, b = rows[coarse_step]["cog_offset"], rows[fine_step]["cog_offset"]
+    from scipy.stats import t as student_t
 
-    def lower(kind):
-        m_a, se_a, m_b, se_b = a[f"{kind}_m"], a[f"{kind}_se_m"], b[f"{kind}_m"], b[f"{kind}_se_m"]
-        if not all(np.isfinite(v) for v in (m_a, se_a, m_b, se_b)):
-            return False
-        return bool(m_b + 2 * se_b < 0 and m_b - m_a + 2 * math.hypot(se_a, se_b) < 0)
-
+    still = list(missing)
+    causes, texts = [], []
     links = {"hmean": "z", "height": "z", "cpa": "radial"}
-    explained = [m for m in missing if m.split()[-1] in links and lower(links[m.split()[-1]])]
-    unexplained = [m for m in missing if m not in explained]
-    text = (_step_heading(result) + "the points' centre of gravity in the filled 0.25 m cells lies "
-            + "; ".join(f"{100 * r['cog_offset']['z_m']:+.1f} ± {100 * r['cog_offset']['z_se_m']:.1f} cm vertically, "
-                        f"{100 * r['cog_offset']['radial_m']:+.1f} ± {100 * r['cog_offset']['radial_se_m']:.1f} cm "
-                        f"radially at {s:g}° ({r['cog_offset']['n_cells']} cells)"
-                        for s, r in sorted(rows.items(), reverse=True))
-            + " (mean ± standard error; negative: low in the cell, towards the stem)")
-    if explained:
-        cause = (f"the TLS angular step: at the study's step the points' centre of gravity lies lower in the cells "
-                 f"(or nearer the stem), so the CoG shift lowers (or draws in) the cubes: {', '.join(explained)}")
-        if unexplained:
-            cause += f"; not established for {', '.join(unexplained)}"
-        return cause, text
-    return (f"not established: the centre of gravity at the study's step does not move the cubes down or in "
-            f"({', '.join(unexplained)})", text)
+    if shift_result:
+        summ = shift_result.get("summary") or {}
+        still_moving, parts = [], []
+        for part in missing:
+            sc, metric = part.split()[0], part.split()[-1]
+            v = (summ.get(sc) or {}).get(metric) or {}
+            p, sim = v.get("predicted"), v.get("simulated")
+            if not p or p["n"] < 2 or not np.isfinite(p["se"]):
+                continue
+            half = float(student_t.ppf(0.975, p["n"] - 1)) * p["se"]
+            unit = _unit(metric)
+            parts.append(f"{part} predicted {p['mean']:+.3f} {unit} (95 % CI {p['mean'] - half:+.3f} to "
+                         f"{p['mean'] + half:+.3f}), simulated {sim['mean']:+.3f} {unit}")
+            if p["mean"] + half >= 0:
+                still_moving.append(part)
+        n = len(shift_result.get("trees", []))
+        surf, every = shift_result.get("surface") or {}, shift_result.get("all_cubes") or {}
+        texts.append(f"CoG-shift experiment ({n} target trees, the run's own files; the unshifted model's returns "
+                     f"carried along with their cubes): the columns' top cubes move "
+                     f"{100 * surf.get('mean', math.nan):+.1f} cm vertically, all cubes "
+                     f"{100 * every.get('mean', math.nan):+.1f} cm (means over the trees)"
+                     + ("; " + "; ".join(parts) if parts else ""))
+        if still_moving:
+            causes.append("the cubes the returns come from: the CoG shift does not move the cubes these parts' "
+                          f"returns lie on down or in ({', '.join(still_moving)})")
+            still = [m for m in still if m not in still_moving]
+    rows = _step_rows(result, "cog_offset")
+    if len(rows) >= 2:
+        coarse_step, fine_step = max(rows), min(rows)
+        a, b = rows[coarse_step]["cog_offset"], rows[fine_step]["cog_offset"]
+
+        def lower(kind):
+            m_a, se_a, m_b, se_b = a[f"{kind}_m"], a[f"{kind}_se_m"], b[f"{kind}_m"], b[f"{kind}_se_m"]
+            if not all(np.isfinite(v) for v in (m_a, se_a, m_b, se_b)):
+                return False
+            return bool(m_b + 2 * se_b < 0 and m_b - m_a + 2 * math.hypot(se_a, se_b) < 0)
+
+        by_step = [m for m in still if m.split()[-1] in links and lower(links[m.split()[-1]])]
+        texts.append(_step_heading(result) + "the points' centre of gravity in the filled 0.25 m cells lies "
+                     + "; ".join(f"{100 * r['cog_offset']['z_m']:+.1f} ± {100 * r['cog_offset']['z_se_m']:.1f} cm "
+                                 f"vertically, {100 * r['cog_offset']['radial_m']:+.1f} ± "
+                                 f"{100 * r['cog_offset']['radial_se_m']:.1f} cm radially at {s:g}° "
+                                 f"({r['cog_offset']['n_cells']} cells)"
+                                 for s, r in sorted(rows.items(), reverse=True))
+                     + " (mean ± standard error; negative: low in the cell, towards the stem)")
+        if by_step:
+            causes.append(f"the TLS angular step: at the study's step the points' centre of gravity lies lower in "
+                          f"the cells (or nearer the stem), so the CoG shift lowers (or draws in) the cubes: "
+                          f"{', '.join(by_step)}")
+            still = [m for m in still if m not in by_step]
+    if not texts:
+        return ("not established: the cubes the returns come from and the TLS angular step are the candidates "
+                "(untested in this run)",
+                "CoG-shift and TLS angular-step experiments not run: `snakemake --cores 2 "
+                "results/experiments/cog_shift.json results/experiments/tls_step.json`")
+    if still:
+        causes.append(("not established for " if causes else "not established: neither the cubes the returns "
+                       "come from nor the centre of gravity at the study's step explains ") + ", ".join(still))
+    return "; ".join(causes), "; ".join(texts)
 
 
 def _group_fill_cause(result, sizes) -> tuple[str, str]:
