@@ -643,7 +643,8 @@ def _cog_shift_experiment(predicted):
     for (sc, k), (mean, se) in predicted.items():
         summary[sc][k]["predicted"] = {"mean": mean, "se": se, "n": 20}
     return {"summary": summary, "trees": [{"plot": "P1", "tree_id": t} for t in range(20)],
-            "surface": {"mean": -0.02, "se": 0.002, "n": 20}, "all_cubes": {"mean": 0.0, "se": 0.001, "n": 20}}
+            "surface": {"mean": -0.02, "se": 0.002, "n": 20}, "all_cubes": {"mean": 0.0, "se": 0.001, "n": 20},
+            "on_cubes": {"als": {"mean": 0.93, "se": 0.01, "n": 20}, "uls": {"mean": 0.88, "se": 0.01, "n": 20}}}
 
 
 def test_f4_cause_from_the_cubes_the_returns_lie_on():
@@ -662,6 +663,7 @@ def test_f4_cause_from_the_cubes_the_returns_lie_on():
     assert "uls height" in explained
     assert all(p in rest for p in ("uls hmean", "als cpa", "uls cpa", "als multi_return_pct", "uls multi_return_pct"))
     assert "CoG-shift experiment (20 target trees" in exp and "top cubes move -2.0 cm vertically" in exp
+    assert "als 93 %, uls 88 % of them from a cube" in exp
     assert "uls hmean predicted -0.020 m (95 % CI -0.024 to -0.016), simulated +0.010 m" in exp
     assert "TLS angular-step" not in exp
     # with the step experiment too: its text follows, and it explains what the cubes leave

@@ -93,8 +93,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     g.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
     g.add_argument("--shifted", required=True, metavar="METHOD", help="its CoG-shift variant")
     g.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios")
-    g.add_argument("--margin", type=float, default=0.05, metavar="M",
-                   help="a return lies on a cube within this distance (m) of it (default 0.05: the range noise)")
+    g.add_argument("--margin", type=float, default=None, metavar="M",
+                   help="a return comes from a cube within this distance (m) of it (default: half the cell)")
     _result_file(g)
     return p
 

@@ -8,9 +8,10 @@ the returns come from: Hmean and the height fall where those cubes move down, th
 the outermost ones move in. The proposed cause of a metric that does not fall is that the cubes
 its returns lie on do not move that way. This experiment tests it on a finished run, per target
 tree and scenario, to first order: each return of the unshifted model's simulation is carried
-along with the cube it lies on (the cube whose centre is nearest in the maximum norm, when the
-return lies within that cube grown by ``margin_m``, which takes in the range noise) by that
-cube's displacement in the shifted model; returns on no cube (stem, ground) stay. The
+along with the cube it comes from (the cube whose centre is nearest in the maximum norm, when the
+return lies within ``margin_m`` of that cube, by default half a cell: the beam's footprint and
+the range noise place a return off the surface that made it) by that cube's displacement in the
+shifted model; returns far from every cube (stem, ground) stay. The
 *predicted change* of a metric is its value on the carried returns less its value on the
 returns (:func:`vlsforest.metrics.tree_metrics`, the tree's ground height as in the run's
 metrics); set beside it is the *simulated change*, the shifted model's metric less the
@@ -41,7 +42,7 @@ __all__ = ["PREDICTED", "carried_returns", "run_cog_shift", "surface_displacemen
 PREDICTED = ("hmean", "height", "cpa")
 
 
-def carried_returns(xyz: np.ndarray, base: VoxelModel, shifted: VoxelModel, margin_m: float = 0.05):
+def carried_returns(xyz: np.ndarray, base: VoxelModel, shifted: VoxelModel, margin_m: float | None = None):
     """Returns carried along with the cubes they lie on, from one model to its shifted variant.
 
     Parameters
@@ -50,20 +51,21 @@ def carried_returns(xyz: np.ndarray, base: VoxelModel, shifted: VoxelModel, marg
         Returns of a simulation of ``base``.
     base, shifted : VoxelModel
         The same cells and cube sizes, the cubes at different centres.
-    margin_m : float
-        A return lies on the cube whose centre is nearest in the maximum norm when it is within
-        that cube's half side plus this (m).
+    margin_m : float, optional
+        A return comes from the cube whose centre is nearest in the maximum norm when it is
+        within that cube's half side plus this (m; default half the cell).
 
     Returns
     -------
     moved : ndarray (n, 3)
         The returns, those on a cube moved by its displacement.
     on_cube : ndarray of bool (n,)
-        Which returns lie on a cube.
+        Which returns come from a cube.
     """
     from scipy.spatial import cKDTree
 
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    margin_m = 0.5 * base.size if margin_m is None else margin_m
     moved, on = xyz.copy(), np.zeros(len(xyz), bool)
     if base.n_voxels == 0 or len(xyz) == 0:
         return moved, on
@@ -91,7 +93,7 @@ def _same_cells(base: VoxelModel, shifted: VoxelModel, names) -> None:
         raise ConfigError(f"CoG shift: the {names[0]} and {names[1]} models do not hold the same cells and cubes")
 
 
-def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: float = 0.05,
+def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: float | None = None,
                   option: str = "--inputs-json", progress=None) -> dict:
     """Each target tree's predicted and simulated change under the CoG shift, per scenario.
 
@@ -105,8 +107,8 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
         The unshifted scaled method and its CoG-shift variant.
     scenarios : sequence of str
         The scenarios.
-    margin_m : float
-        See :func:`carried_returns`.
+    margin_m : float, optional
+        See :func:`carried_returns` (default: half the models' cell).
     option : str
         The name of the manifest in error messages.
     progress : callable, optional
@@ -120,8 +122,9 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
         :data:`PREDICTED` ``predicted`` (the same of the predicted changes) and ``fit``
         (:func:`~vlsforest.experiments.shift_room.line_fit` of the simulated on the predicted
         change)); ``surface`` and ``all_cubes`` (mean, se, n over the trees of the mean vertical
-        displacement of the columns' top cubes and of all cubes, m); ``trees`` (plot, tree id,
-        group, the displacements, per scenario the share of returns on a cube and the predicted
+        displacement of the columns' top cubes and of all cubes, m); ``on_cubes`` (scenario → mean,
+        se, n over the trees of the share of returns from a cube); ``trees`` (plot, tree id,
+        group, the displacements, per scenario the share of returns from a cube and the predicted
         and simulated change of each metric).
 
     Raises
@@ -137,7 +140,7 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
     scenarios = [str(s) for s in scenarios]
     if not scenarios:
         raise ConfigError("CoG shift: needs at least one scenario")
-    if not (math.isfinite(margin_m) and margin_m >= 0):
+    if margin_m is not None and not (math.isfinite(margin_m) and margin_m >= 0):
         raise ConfigError(f"CoG shift: margin_m must be ≥ 0, got {margin_m!r}")
     metrics = (*PREDICTED, "multi_return_pct")
     plots = plot_files(manifest, option)
@@ -193,12 +196,14 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
                 v["fit"] = line_fit(pred, sim)
             summary[sc][k] = v
     return {"experiment": "cog_shift", "base": base, "shifted": shifted, "scenarios": scenarios,
-            "margin_m": float(margin_m), "cell_m": cell, "plots": list(plots),
+            "margin_m": float(margin_m) if margin_m is not None else (0.5 * cell if cell else None),
+            "cell_m": cell, "plots": list(plots),
             "method": ("per target tree and scenario: the unshifted model's simulated returns carried along with "
-                       "the cubes they lie on (nearest cube centre in the maximum norm, within the cube grown by "
-                       "margin_m) to the CoG-shifted cubes; predicted change = metric of the carried returns − "
+                       "the cubes they come from (nearest cube centre in the maximum norm, within margin_m of the "
+                       "cube) to the CoG-shifted cubes; predicted change = metric of the carried returns − "
                        "metric of the returns; simulated change = the run's metrics, shifted − unshifted"),
             "summary": summary,
             "surface": mean_se([r["surface_dz_m"] for r in rows]),
             "all_cubes": mean_se([r["all_cubes_dz_m"] for r in rows]),
+            "on_cubes": {sc: mean_se([r["scenarios"][sc]["on_cubes"] for r in rows]) for sc in scenarios},
             "trees": rows}

@@ -586,10 +586,12 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                 still_moving.append(part)
         n = len(shift_result.get("trees", []))
         surf, every = shift_result.get("surface") or {}, shift_result.get("all_cubes") or {}
+        share = ", ".join(f"{sc} {100 * v['mean']:.0f} %" for sc, v in (shift_result.get("on_cubes") or {}).items()
+                          if np.isfinite(v.get("mean", math.nan)))
         texts.append(f"CoG-shift experiment ({n} target trees, the run's own files; the unshifted model's returns "
-                     f"carried along with their cubes): the columns' top cubes move "
-                     f"{100 * surf.get('mean', math.nan):+.1f} cm vertically, all cubes "
-                     f"{100 * every.get('mean', math.nan):+.1f} cm (means over the trees)"
+                     f"carried along with their cubes" + (f": {share} of them from a cube" if share else "")
+                     + f"): the columns' top cubes move {100 * surf.get('mean', math.nan):+.1f} cm vertically, "
+                     f"all cubes {100 * every.get('mean', math.nan):+.1f} cm (means over the trees)"
                      + ("; " + "; ".join(parts) if parts else ""))
         if still_moving:
             causes.append("the cubes the returns come from: the CoG shift does not move the cubes these parts' "
