@@ -385,6 +385,8 @@ def test_cog_shift_carries_the_returns_with_their_cubes(tmp_path):
     assert rec["predicted"]["height"] == pytest.approx(-0.03)  # the highest returns lie on the top cubes
     assert rec["simulated"]["hmean"] == pytest.approx(-0.1) and rec["simulated"]["height"] == 0.0
     assert "predicted" not in res["summary"]["als"]["multi_return_pct"]
+    assert res["summary"]["als"]["hmean"]["difference"]["mean"] == pytest.approx(-0.1 + 0.03 * 9 / 20)
+    assert res["on_cubes"]["als"]["mean"] == pytest.approx(0.9) and res["margin_m"] == 0.125
     with pytest.raises(ConfigError, match="differ"):
         run_cog_shift(man, "s", "s", ["als"])
     man["P1"]["methods"]["c"]["voxels"] = str(d / "other.npz")

@@ -636,12 +636,15 @@ def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
     assert f["F4"]["cause"].startswith("not established")
 
 
-def _cog_shift_experiment(predicted):
-    """A CoG-shift result whose parts predict ``predicted[(scenario, metric)] = (mean, se)`` over 20 trees."""
+def _cog_shift_experiment(predicted, difference=None):
+    """A CoG-shift result whose parts predict ``predicted[(scenario, metric)] = (mean, se)`` over 20
+    trees, with a per-tree difference simulated − predicted ``difference[(scenario, metric)]``."""
     summary = {sc: {k: {"simulated": {"mean": 0.01, "se": 0.01, "n": 20}} for k in
                     ("hmean", "height", "cpa", "multi_return_pct")} for sc in ("als", "uls")}
     for (sc, k), (mean, se) in predicted.items():
         summary[sc][k]["predicted"] = {"mean": mean, "se": se, "n": 20}
+    for (sc, k), (mean, se) in (difference or {}).items():
+        summary[sc][k]["difference"] = {"mean": mean, "se": se, "n": 20}
     return {"summary": summary, "trees": [{"plot": "P1", "tree_id": t} for t in range(20)],
             "surface": {"mean": -0.02, "se": 0.002, "n": 20}, "all_cubes": {"mean": 0.0, "se": 0.001, "n": 20},
             "on_cubes": {"als": {"mean": 0.93, "se": 0.01, "n": 20}, "uls": {"mean": 0.88, "se": 0.01, "n": 20}}}
@@ -649,19 +652,26 @@ def _cog_shift_experiment(predicted):
 
 def test_f4_cause_from_the_cubes_the_returns_lie_on():
     """A part whose predicted change is not below zero (its 95 % interval reaches 0) is explained by
-    the cubes its returns lie on; one predicted clearly lower is not; the multiple-return share has
-    no prediction."""
+    the cubes its returns come from; one predicted lower whose simulated change follows the
+    prediction (their per-tree difference not significant) is a change too small to resolve; one
+    predicted lower that the simulation departs from is not explained; the multiple-return share
+    has no prediction."""
     m, vc, tt = study_like(flip=True)  # every part of F4 disagrees
     pred = {("als", "hmean"): (-0.001, 0.002), ("uls", "hmean"): (-0.02, 0.002), ("als", "height"): (0.01, 0.02),
-            ("uls", "height"): (0.0, 0.0), ("als", "cpa"): (-0.5, 0.05)}
-    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred)})
+            ("uls", "height"): (0.0, 0.0), ("als", "cpa"): (-0.5, 0.05), ("uls", "cpa"): (-0.5, 0.05)}
+    diff = {("uls", "hmean"): (0.1, 0.01), ("als", "cpa"): (0.02, 0.05)}
+    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred, diff)})
     cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
     assert cause.startswith("the cubes the returns come from")
-    explained, rest = cause.split("not established for")
-    assert all(p in explained for p in ("als hmean", "als height"))
+    not_down, rest = cause.split("; a change smaller than the trees' spread resolves")
+    small, rest = rest.split("not established for")
+    assert all(p in not_down for p in ("als hmean", "als height"))
     # a prediction without spread (se 0) over 20 trees: its interval is the point 0, not below zero
-    assert "uls height" in explained
-    assert all(p in rest for p in ("uls hmean", "als cpa", "uls cpa", "als multi_return_pct", "uls multi_return_pct"))
+    assert "uls height" in not_down
+    assert "als cpa" in small and "uls cpa" not in small  # uls cpa: no difference to judge by
+    assert all(p in rest for p in ("uls hmean", "uls cpa", "als multi_return_pct", "uls multi_return_pct"))
+    assert "als cpa predicted -0.500 m² (95 % CI -0.605 to -0.395), simulated +0.010 m² (simulated − predicted " \
+           "95 % CI -0.085 to +0.125)" in exp
     assert "CoG-shift experiment (20 target trees" in exp and "top cubes move -2.0 cm vertically" in exp
     assert "als 93 %, uls 88 % of them from a cube" in exp
     assert "uls hmean predicted -0.020 m (95 % CI -0.024 to -0.016), simulated +0.010 m" in exp

@@ -15,8 +15,10 @@ shifted model; returns far from every cube (stem, ground) stay. The
 *predicted change* of a metric is its value on the carried returns less its value on the
 returns (:func:`vlsforest.metrics.tree_metrics`, the tree's ground height as in the run's
 metrics); set beside it is the *simulated change*, the shifted model's metric less the
-unshifted one's (the run's metrics). The multiple-return share belongs to pulses, not to return
-positions, and has no such prediction.
+unshifted one's (the run's metrics), and their difference per tree: where it is not significant,
+the simulations follow the cubes, and a simulated change whose interval still reaches zero is a
+change smaller than the trees' spread resolves. The multiple-return share belongs to pulses, not
+to return positions, and has no such prediction.
 
 Per tree the result also gives the cubes' mean vertical displacement over all cubes and over
 the top cube of each column (the crown's surface): the direction the shift moves the crown itself.
@@ -119,7 +121,8 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
     dict
         ``base``, ``shifted``, ``scenarios``, ``margin_m``, ``cell_m``; ``summary`` (scenario →
         metric → ``simulated`` (mean, se, n of the trees' simulated changes), and for
-        :data:`PREDICTED` ``predicted`` (the same of the predicted changes) and ``fit``
+        :data:`PREDICTED` ``predicted`` (the same of the predicted changes), ``difference`` (the
+        same of each tree's simulated less predicted change) and ``fit``
         (:func:`~vlsforest.experiments.shift_room.line_fit` of the simulated on the predicted
         change)); ``surface`` and ``all_cubes`` (mean, se, n over the trees of the mean vertical
         displacement of the columns' top cubes and of all cubes, m); ``on_cubes`` (scenario → mean,
@@ -193,6 +196,7 @@ def run_cog_shift(manifest, base: str, shifted: str, scenarios, *, margin_m: flo
             if k in PREDICTED:
                 pred = [r["scenarios"][sc]["predicted"][k] for r in rows]
                 v["predicted"] = mean_se(pred)
+                v["difference"] = mean_se(np.subtract(sim, pred))
                 v["fit"] = line_fit(pred, sim)
             summary[sc][k] = v
     return {"experiment": "cog_shift", "base": base, "shifted": shifted, "scenarios": scenarios,

@@ -553,10 +553,14 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     """Cause and experiment of F4's disagreeing parts from the CoG-shift experiment and the TLS
     points' centre of gravity in the 0.25 m cells at the embedded forest's and the study's step.
 
-    Two proposed causes. (1) The cubes a part's returns lie on do not move down (``hmean``,
-    ``height``) or in (``cpa``): the CoG-shift experiment (:mod:`vlsforest.experiments.cog_shift`)
-    supports it where the change the carried returns predict is not below zero, i.e. the upper
-    end of its 95 % interval over the trees (t, n − 1 degrees of freedom) is ≥ 0. (2) The TLS
+    From the CoG-shift experiment (:mod:`vlsforest.experiments.cog_shift`), with 95 % intervals
+    over the trees (t, n − 1 degrees of freedom): (1) the cubes a part's returns come from do not
+    move down (``hmean``, ``height``) or in (``cpa``): the change the carried returns predict is
+    not below zero (its interval reaches zero); (2) the change is too small to resolve: the
+    predicted change lies below zero, the per-tree difference simulated − predicted is not
+    significant (its interval holds zero), so the simulations follow the cubes, and only the
+    simulated change's own interval reaches zero. A part whose simulated change departs from the
+    prediction stays unexplained by it. From the step experiment, (3) the TLS
     angular step: at the study's finer step the points' centre of gravity lies lower in the cells
     (and nearer the stem axis) than at ours; the step experiment supports it for the height parts
     when the vertical offset at the finest step lies below zero by more than twice its standard
@@ -569,21 +573,32 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     still = list(missing)
     causes, texts = [], []
     links = {"hmean": "z", "height": "z", "cpa": "radial"}
+    def interval(v):
+        if not v or v["n"] < 2 or not np.isfinite(v["se"]):
+            return None
+        half = float(student_t.ppf(0.975, v["n"] - 1)) * v["se"]
+        return v["mean"] - half, v["mean"] + half
+
     if shift_result:
         summ = shift_result.get("summary") or {}
-        still_moving, parts = [], []
+        still_moving, too_small, parts = [], [], []
         for part in missing:
             sc, metric = part.split()[0], part.split()[-1]
             v = (summ.get(sc) or {}).get(metric) or {}
-            p, sim = v.get("predicted"), v.get("simulated")
-            if not p or p["n"] < 2 or not np.isfinite(p["se"]):
+            p, sim, diff = v.get("predicted"), v.get("simulated"), interval(v.get("difference"))
+            ci = interval(p)
+            if ci is None:
                 continue
-            half = float(student_t.ppf(0.975, p["n"] - 1)) * p["se"]
             unit = _unit(metric)
-            parts.append(f"{part} predicted {p['mean']:+.3f} {unit} (95 % CI {p['mean'] - half:+.3f} to "
-                         f"{p['mean'] + half:+.3f}), simulated {sim['mean']:+.3f} {unit}")
-            if p["mean"] + half >= 0:
+            text = (f"{part} predicted {p['mean']:+.3f} {unit} (95 % CI {ci[0]:+.3f} to {ci[1]:+.3f}), "
+                    f"simulated {sim['mean']:+.3f} {unit}")
+            if diff is not None:
+                text += f" (simulated − predicted 95 % CI {diff[0]:+.3f} to {diff[1]:+.3f})"
+            parts.append(text)
+            if ci[1] >= 0:
                 still_moving.append(part)
+            elif diff is not None and diff[0] <= 0 <= diff[1]:
+                too_small.append(part)
         n = len(shift_result.get("trees", []))
         surf, every = shift_result.get("surface") or {}, shift_result.get("all_cubes") or {}
         share = ", ".join(f"{sc} {100 * v['mean']:.0f} %" for sc, v in (shift_result.get("on_cubes") or {}).items()
@@ -595,8 +610,13 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                      + ("; " + "; ".join(parts) if parts else ""))
         if still_moving:
             causes.append("the cubes the returns come from: the CoG shift does not move the cubes these parts' "
-                          f"returns lie on down or in ({', '.join(still_moving)})")
-            still = [m for m in still if m not in still_moving]
+                          "returns come from down or in beyond the trees' spread (the 95 % interval of the change "
+                          f"they predict reaches zero; {', '.join(still_moving)})")
+        if too_small:
+            causes.append("a change smaller than the trees' spread resolves: the cubes these parts' returns come "
+                          "from move down or in, the simulations follow them, and only the simulated change's own "
+                          f"95 % interval still reaches zero ({', '.join(too_small)})")
+        still = [m for m in still if m not in still_moving and m not in too_small]
     rows = _step_rows(result, "cog_offset")
     if len(rows) >= 2:
         coarse_step, fine_step = max(rows), min(rows)
