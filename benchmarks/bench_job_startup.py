@@ -97,6 +97,7 @@ RULE_IMPORTS = {
     "experiment_crown_outline": ("experiment", ["vlsforest.commands.experiment",
                                                 "vlsforest.experiments.crown_outline"]),
     "experiment_shift_room": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.shift_room"]),
+    "experiment_cog_shift": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.cog_shift"]),
 }
 
 
