@@ -33,9 +33,9 @@ Usage::
 
 The run starts from what ``results/`` already holds; ``--forceall`` reruns every job (``rm -rf
 results logs .snakemake`` gives a fresh-clone run), ``--forcerun`` the named rules' jobs and
-those that depend on them (one rule measured on a finished study). The Snakemake is the one installed for this
-Python (``.venv/bin/snakemake``), and that folder goes first on ``PATH`` so that the jobs call
-the project's ``vlsforest``.
+those that depend on them (one rule measured on a finished study). The Snakemake is the one
+installed for this Python (``.venv/bin/snakemake``), and that folder goes first on ``PATH`` so
+that the jobs call the project's ``vlsforest``.
 """
 
 from __future__ import annotations
