@@ -367,12 +367,16 @@ def test_cog_shift_carries_the_returns_with_their_cubes(tmp_path):
     off = np.array([[5.0, 5.0, 10.5]] * 2)               # 2 on no cube
     xyz = np.concatenate([on_top, on_side, off])
     write_las(d / "trees.laz", PointCloud(xyz, {"tree_id": np.full(len(xyz), 11, np.int32)}))
+    # the shifted model's run: twice the returns on the (lowered) top cubes, none on the sides
+    xyz_s = np.concatenate([centre[top] + [0.0, 0.0, 0.05]] * 2 + [off])
+    write_las(d / "trees_c.laz", PointCloud(xyz_s, {"tree_id": np.full(len(xyz_s), 11, np.int32)}))
     for name, h in (("a", 10.0), ("b", 9.9)):
         (d / f"{name}.csv").write_text("tree_id,hmean,height,cpa,multi_return_pct\n" f"11,{h},11,1.0,50\n")
     man = {"P1": {"targets": str(d / "targets.csv"),
                   "methods": {"s": {"voxels": str(d / "base.npz"), "trees": {"als": str(d / "trees.laz")},
                                     "metrics": {"als": str(d / "a.csv")}},
-                              "c": {"voxels": str(d / "cog.npz"), "metrics": {"als": str(d / "b.csv")}}}}}
+                              "c": {"voxels": str(d / "cog.npz"), "trees": {"als": str(d / "trees_c.laz")},
+                                    "metrics": {"als": str(d / "b.csv")}}}}}
     moved, on = carried_returns(xyz, base, VoxelModel.load(d / "cog.npz"))
     assert on.tolist() == [True] * 18 + [False] * 2
     assert np.allclose(moved - xyz, np.r_[np.tile([0, 0, -0.03], (9, 1)), np.zeros((11, 3))])
@@ -387,12 +391,42 @@ def test_cog_shift_carries_the_returns_with_their_cubes(tmp_path):
     assert "predicted" not in res["summary"]["als"]["multi_return_pct"]
     assert res["summary"]["als"]["hmean"]["difference"]["mean"] == pytest.approx(-0.1 + 0.03 * 9 / 20)
     assert res["on_cubes"]["als"]["mean"] == pytest.approx(0.9) and res["margin_m"] == 0.125
+    # carried back to the unshifted cubes, the shifted run's returns lie on the top faces where
+    # the unshifted run had half of them on lower cubes' sides: the reached change is that
+    back_z = np.r_[np.tile(c[top, 2] + 0.05, 2), off[:, 2]]
+    assert rec["reached"]["hmean"] == pytest.approx(back_z.mean() - xyz[:, 2].mean())
+    assert rec["reached"]["height"] == pytest.approx(0.0)
+    assert res["summary"]["als"]["hmean"]["reached"]["mean"] == pytest.approx(back_z.mean() - xyz[:, 2].mean())
+    assert rec["top_share"] == pytest.approx([0.45, 0.9])
+    assert res["top_share"]["als"]["change"]["mean"] == pytest.approx(0.45)
+    # the cubes moved only vertically: nine 0.1 m squares in vertical view in both models
+    assert tree["cover_m2"] == pytest.approx([0.09, 0.09])
+    assert res["cover"]["change_pct"]["mean"] == pytest.approx(0.0)
     with pytest.raises(ConfigError, match="differ"):
         run_cog_shift(man, "s", "s", ["als"])
     man["P1"]["methods"]["c"]["voxels"] = str(d / "other.npz")
     VoxelModel(0.25, ijk[:-1], base.owner[:-1], half=base.half[:-1]).save(d / "other.npz")
     with pytest.raises(ConfigError, match="same cells"):
         run_cog_shift(man, "s", "c", ["als"])
+
+
+def test_cover_area_is_the_union_of_the_cubes_squares_seen_from_above():
+    """Two cubes of one column hide one another from above until the shift moves them apart;
+    a cube alone covers its square whatever the raster's pixel."""
+    from vlsforest.experiments.cog_shift import column_tops, cover_area
+    from vlsforest.io.voxel_model import VoxelModel
+
+    ijk = np.array([[0, 0, 10], [0, 0, 11], [3, 0, 10]])
+    stacked = VoxelModel(0.25, ijk, np.ones(3, int), half=np.full(3, 0.05))
+    assert cover_area(stacked) == pytest.approx(2 * 0.01)
+    centre = stacked.centres().copy()
+    centre[1, 0] += 0.05  # the upper cube half a side to the side: 0.1 × 0.15 m for the column
+    apart = VoxelModel(0.25, ijk, stacked.owner, half=stacked.half, centre=centre)
+    assert cover_area(apart) == pytest.approx(0.015 + 0.01)
+    assert cover_area(apart, pixel_m=0.001) == pytest.approx(0.025)
+    assert column_tops(stacked).tolist() == [False, True, True]
+    with pytest.raises(ConfigError, match="pixel_m"):
+        cover_area(stacked, pixel_m=0.0)
 
 
 def test_cli_run_experiments_refuse_bad_inputs_in_one_line(tmp_path, capsys):

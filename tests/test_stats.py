@@ -636,16 +636,19 @@ def test_f4_cause_from_the_centre_of_gravity_at_the_studys_step():
     assert f["F4"]["cause"].startswith("not established")
 
 
-def _cog_shift_experiment(predicted, difference=None):
+def _cog_shift_experiment(predicted, difference=None, reached=None, extra=None):
     """A CoG-shift result whose parts predict ``predicted[(scenario, metric)] = (mean, se)`` over 20
-    trees, with a per-tree difference simulated − predicted ``difference[(scenario, metric)]``."""
+    trees, with a per-tree difference simulated − predicted ``difference[(scenario, metric)]`` and
+    a reached change ``reached[(scenario, metric)]``; ``extra`` adds top-level keys."""
     summary = {sc: {k: {"simulated": {"mean": 0.01, "se": 0.01, "n": 20}} for k in
                     ("hmean", "height", "cpa", "multi_return_pct")} for sc in ("als", "uls")}
     for (sc, k), (mean, se) in predicted.items():
         summary[sc][k]["predicted"] = {"mean": mean, "se": se, "n": 20}
     for (sc, k), (mean, se) in (difference or {}).items():
         summary[sc][k]["difference"] = {"mean": mean, "se": se, "n": 20}
-    return {"summary": summary, "trees": [{"plot": "P1", "tree_id": t} for t in range(20)],
+    for (sc, k), (mean, se) in (reached or {}).items():
+        summary[sc][k]["reached"] = {"mean": mean, "se": se, "n": 20}
+    return {**(extra or {}), "summary": summary, "trees": [{"plot": "P1", "tree_id": t} for t in range(20)],
             "surface": {"mean": -0.02, "se": 0.002, "n": 20}, "all_cubes": {"mean": 0.0, "se": 0.001, "n": 20},
             "on_cubes": {"als": {"mean": 0.93, "se": 0.01, "n": 20}, "uls": {"mean": 0.88, "se": 0.01, "n": 20}}}
 
@@ -681,6 +684,38 @@ def test_f4_cause_from_the_cubes_the_returns_lie_on():
     cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
     assert exp.index("CoG-shift experiment") < exp.index("TLS angular-step experiment")
     assert "the TLS angular step: " in cause and "uls hmean" in cause.split("the TLS angular step: ")[1]
+
+
+def test_f4_cause_from_what_the_pulses_reach():
+    """A part the simulation departs from the prediction with, whose shifted returns carried back to
+    the unshifted cubes already raise it (reached change above zero), is explained by what the
+    pulses reach; one whose reached change reaches zero stays unexplained. The shares of returns
+    on the columns' top cubes and the cover seen from above join the cause only where they rise
+    significantly, and the experiment's text gives them."""
+    m, vc, tt = study_like(flip=True)
+    pred = {("uls", "hmean"): (-0.007, 0.0005), ("als", "hmean"): (-0.007, 0.0005)}
+    diff = {("uls", "hmean"): (0.10, 0.01), ("als", "hmean"): (0.10, 0.01)}
+    reached = {("uls", "hmean"): (0.11, 0.01), ("als", "hmean"): (0.02, 0.02)}
+    mean = lambda x, se: {"mean": x, "se": se, "n": 20}  # noqa: E731
+    extra = {"top_share": {"als": {"base": mean(0.50, 0.01), "shifted": mean(0.50, 0.01), "change": mean(0.0, 0.01)},
+                           "uls": {"base": mean(0.60, 0.01), "shifted": mean(0.66, 0.01),
+                                   "change": mean(0.06, 0.005)}},
+             "cover": {"base_m2": mean(40.0, 2.0), "shifted_m2": mean(46.0, 2.0), "change_pct": mean(15.0, 1.0)}}
+    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred, diff, reached, extra)})
+    cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
+    reach, rest = cause.split("not established for")
+    assert reach.startswith("what the pulses reach") and "uls hmean" in reach and "als hmean" not in reach
+    assert "more of them end on the columns' top cubes (uls +6 pp), and the columns' cubes, moved apart, cover " \
+           "more of the crown seen from above (+15 %)" in reach
+    assert "als hmean" in rest
+    assert "uls hmean predicted -0.007 m (95 % CI -0.008 to -0.006), simulated +0.010 m" in exp
+    assert "reached +0.110 m (95 % CI +0.089 to +0.131)" in exp
+    assert "returns on the columns' top cubes als 50 → 50 %, uls 60 → 66 %" in exp
+    assert "the cubes cover 40.0 → 46.0 m² in vertical view (+15 ± 1 %)" in exp
+    # the cover does not rise: the cause names the top cubes alone
+    extra["cover"]["change_pct"] = mean(1.0, 1.0)
+    f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred, diff, reached, extra)})
+    assert "(uls +6 pp); not established" in f["F4"]["cause"] and "seen from above" not in f["F4"]["cause"]
 
 
 def _outline_summary(outline, unseen, base):

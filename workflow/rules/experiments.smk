@@ -111,11 +111,11 @@ rule experiment_shift_room:
 
 
 rule experiment_cog_shift:
-    # predicts the CoG shift's changes from the cubes the run's returns lie on (no simulation)
+    # predicts the CoG shift's changes from the cubes the run's returns lie on, and splits the
+    # simulated change into the cubes' displacement and what the pulses reach (no simulation)
     input:
         lambda wildcards: manifest_paths(run_outputs_manifest(cog_shift_methods()),
-                                         keep=lambda key: key in ("targets", "voxels", "metrics"))
-        + manifest_paths(run_outputs_manifest(cog_shift_methods()[:1]), keep=lambda key: key == "trees"),
+                                         keep=lambda key: key in ("targets", "voxels", "metrics", "trees")),
     output:
         "results/experiments/cog_shift.json",
     log:

@@ -18,8 +18,8 @@ model's own crown base and the part the simulation sees of it
 shift changes (:func:`vlsforest.experiments.shift_room.run_shift_room`).
 ``vlsforest experiment cog-shift --inputs-json JSON --base scaled --shifted scaled_cog_shift
 --scenarios als uls -o cog_shift.json`` predicts each target tree's change under the CoG shift from
-the cubes its returns lie on and sets it beside the simulated change
-(:func:`vlsforest.experiments.cog_shift.run_cog_shift`). ``--inputs-json`` names the run's files
+the cubes its returns lie on, sets it beside the simulated change and splits off what the
+shifted model's pulses reach (:func:`vlsforest.experiments.cog_shift.run_cog_shift`). ``--inputs-json`` names the run's files
 (:mod:`vlsforest.experiments.run_outputs`).
 
 Same config and seed give the same bytes.
@@ -87,8 +87,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     g = sub.add_parser("cog-shift", help="what the CoG shift does to the cubes the returns come from",
                        description="Carry each return of the unshifted scaled model's simulation along with the "
                                    "cube it lies on to the CoG-shifted cubes, and set the change of Hmean, height "
-                                   "and CPA this predicts beside the simulated change, over the trees of a "
-                                   "finished run.")
+                                   "and CPA this predicts beside the simulated change; carry the shifted "
+                                   "model's returns back the same way to give the change that comes from what "
+                                   "its pulses reach; over the trees of a finished run.")
     g.add_argument("--inputs-json", required=True, metavar="JSON", help=inputs_help)
     g.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
     g.add_argument("--shifted", required=True, metavar="METHOD", help="its CoG-shift variant")

@@ -559,8 +559,13 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     not below zero (its interval reaches zero); (2) the change is too small to resolve: the
     predicted change lies below zero, the per-tree difference simulated − predicted is not
     significant (its interval holds zero), so the simulations follow the cubes, and only the
-    simulated change's own interval reaches zero. A part whose simulated change departs from the
-    prediction stays unexplained by it. From the step experiment, (3) the TLS
+    simulated change's own interval reaches zero; (3) what the pulses reach: the simulated
+    change departs from the prediction and the reached change (the shifted model's returns
+    carried back to the unshifted cubes, less the unshifted model's returns) lies above zero:
+    the shift changes which cubes and faces the pulses end on (with, where significant, the
+    change of the share of returns on the columns' top cubes and of the cubes' cover seen from
+    above). A part whose simulated change departs from the prediction without a reached change
+    above zero stays unexplained by it. From the step experiment, (4) the TLS
     angular step: at the study's finer step the points' centre of gravity lies lower in the cells
     (and nearer the stem axis) than at ours; the step experiment supports it for the height parts
     when the vertical offset at the finest step lies below zero by more than twice its standard
@@ -568,20 +573,13 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     ``cpa`` the same of the radial offset. The multiple-return share has no such link: its parts
     stay unexplained.
     """
-    from scipy.stats import t as student_t
-
     still = list(missing)
     causes, texts = [], []
     links = {"hmean": "z", "height": "z", "cpa": "radial"}
-    def interval(v):
-        if not v or v["n"] < 2 or not np.isfinite(v["se"]):
-            return None
-        half = float(student_t.ppf(0.975, v["n"] - 1)) * v["se"]
-        return v["mean"] - half, v["mean"] + half
-
+    interval = _mean_interval
     if shift_result:
         summ = shift_result.get("summary") or {}
-        still_moving, too_small, parts = [], [], []
+        still_moving, too_small, reached, parts = [], [], [], []
         for part in missing:
             sc, metric = part.split()[0], part.split()[-1]
             v = (summ.get(sc) or {}).get(metric) or {}
@@ -594,11 +592,17 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                     f"simulated {sim['mean']:+.3f} {unit}")
             if diff is not None:
                 text += f" (simulated − predicted 95 % CI {diff[0]:+.3f} to {diff[1]:+.3f})"
+            reach = interval(v.get("reached"))
+            if reach is not None:
+                text += (f", reached {v['reached']['mean']:+.3f} {unit} "
+                         f"(95 % CI {reach[0]:+.3f} to {reach[1]:+.3f})")
             parts.append(text)
             if ci[1] >= 0:
                 still_moving.append(part)
             elif diff is not None and diff[0] <= 0 <= diff[1]:
                 too_small.append(part)
+            elif reach is not None and reach[0] > 0:
+                reached.append(part)
         n = len(shift_result.get("trees", []))
         surf, every = shift_result.get("surface") or {}, shift_result.get("all_cubes") or {}
         share = ", ".join(f"{sc} {100 * v['mean']:.0f} %" for sc, v in (shift_result.get("on_cubes") or {}).items()
@@ -607,7 +611,7 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                      f"carried along with their cubes" + (f": {share} of them from a cube" if share else "")
                      + f"): the columns' top cubes move {100 * surf.get('mean', math.nan):+.1f} cm vertically, "
                      f"all cubes {100 * every.get('mean', math.nan):+.1f} cm (means over the trees)"
-                     + ("; " + "; ".join(parts) if parts else ""))
+                     + ("; " + "; ".join(parts) if parts else "") + _reach_text(shift_result))
         if still_moving:
             causes.append("the cubes the returns come from: the CoG shift does not move the cubes these parts' "
                           "returns come from down or in beyond the trees' spread (the 95 % interval of the change "
@@ -616,7 +620,13 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
             causes.append("a change smaller than the trees' spread resolves: the cubes these parts' returns come "
                           "from move down or in, the simulations follow them, and only the simulated change's own "
                           f"95 % interval still reaches zero ({', '.join(too_small)})")
-        still = [m for m in still if m not in still_moving and m not in too_small]
+        if reached:
+            causes.append("what the pulses reach: the shifted model's own returns, carried back to where the "
+                          "unshifted cubes lie, already raise these parts (the 95 % interval of the reached change "
+                          f"lies above zero; {', '.join(reached)}): the shift changes which cubes and faces the "
+                          "pulses end on, not only where the cubes lie"
+                          + _reach_why(shift_result, sorted({p.split()[0] for p in reached})))
+        still = [m for m in still if m not in still_moving and m not in too_small and m not in reached]
     rows = _step_rows(result, "cog_offset")
     if len(rows) >= 2:
         coarse_step, fine_step = max(rows), min(rows)
@@ -650,6 +660,54 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
         causes.append(("not established for " if causes else "not established: neither the cubes the returns "
                        "come from nor the centre of gravity at the study's step explains ") + ", ".join(still))
     return "; ".join(causes), "; ".join(texts)
+
+
+def _mean_interval(v):
+    """The 95 % interval (t, n − 1 degrees of freedom) of a mean ``{mean, se, n}``; None without one."""
+    from scipy.stats import t as student_t
+
+    if not v or v.get("n", 0) < 2 or not np.isfinite(v.get("se", math.nan)):
+        return None
+    half = float(student_t.ppf(0.975, v["n"] - 1)) * v["se"]
+    return v["mean"] - half, v["mean"] + half
+
+
+def _above_zero(v) -> bool:
+    """Whether a mean's 95 % interval lies above zero."""
+    ci = _mean_interval(v)
+    return ci is not None and ci[0] > 0
+
+
+def _reach_text(shift_result) -> str:
+    """The CoG-shift experiment's shares of returns on the columns' top cubes and the cubes'
+    cover in vertical view, unshifted → shifted ('' where the result has neither)."""
+    out = []
+    shares = shift_result.get("top_share") or {}
+    if shares:
+        out.append("returns on the columns' top cubes " + ", ".join(
+            f"{sc} {100 * v['base']['mean']:.0f} → {100 * v['shifted']['mean']:.0f} %" for sc, v in shares.items()))
+    cover = shift_result.get("cover") or {}
+    if cover:
+        out.append(f"the cubes cover {cover['base_m2']['mean']:.1f} → {cover['shifted_m2']['mean']:.1f} m² in "
+                   f"vertical view ({cover['change_pct']['mean']:+.0f} ± {cover['change_pct']['se']:.0f} %)")
+    return ("; " + "; ".join(out) + " (unshifted → shifted, means over the trees)") if out else ""
+
+
+def _reach_why(shift_result, scenarios) -> str:
+    """What the CoG-shift experiment shows of where the shifted model's pulses end: more of them
+    on the columns' top cubes, and the columns' cubes, moved apart, covering more of the crown
+    seen from above (each only where its 95 % interval lies above zero)."""
+    shares = shift_result.get("top_share") or {}
+    up = [f"{sc} {100 * shares[sc]['change']['mean']:+.0f} pp" for sc in scenarios
+          if sc in shares and _above_zero(shares[sc].get("change"))]
+    cover = (shift_result.get("cover") or {}).get("change_pct")
+    out = ""
+    if up:
+        out += f"; more of them end on the columns' top cubes ({', '.join(up)})"
+    if _above_zero(cover):
+        out += (f"{', and' if up else ';'} the columns' cubes, moved apart, cover more of the crown seen from "
+                f"above ({cover['mean']:+.0f} %)")
+    return out
 
 
 def _group_fill_cause(result, sizes) -> tuple[str, str]:
