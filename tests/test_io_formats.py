@@ -525,6 +525,34 @@ def test_las_flag_fields_round_trip_as_standard_fields(tmp_path):
     assert list(laspy.read(tmp_path / "b.las").point_format.extra_dimension_names) == []
 
 
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_pieces_write_the_bytes_of_the_joined_cloud(tmp_path, suffix):
+    """A file gathered in pieces (one of them empty, the smallest coordinates in the last) holds
+    the bytes write_las writes for the pieces joined; a piece with other attributes is refused,
+    and nothing is written before write()."""
+    from vlsforest.io.las import LasPieces, PointCloud, write_las
+
+    rng = np.random.default_rng(3)
+    n = 5000
+    xyz = rng.normal(size=(n, 3)) * 40 + [512.3, -20.7, 300.0]
+    xyz[-1] = [400.0, -120.5, 250.2]  # the offsets come from the last piece
+    attrs = {"intensity": rng.integers(0, 65535, n).astype(np.uint16),
+             "return_number": rng.integers(1, 4, n).astype(np.uint8), "number_of_returns": np.full(n, 3, np.uint8),
+             "gps_time": rng.random(n) * 100, "scan_angle": rng.normal(size=n) * 20,
+             "object_id": rng.integers(0, 9, n).astype(np.int32), "amplitude": rng.random(n).astype(np.float32)}
+    write_las(tmp_path / f"whole{suffix}", PointCloud(xyz, attrs))
+    pieces = LasPieces(tmp_path / f"pieces{suffix}")
+    for a, b in ((0, 1700), (1700, 1700), (1700, n)):
+        pieces.add(PointCloud(xyz[a:b], {k: v[a:b] for k, v in attrs.items()}))
+    assert pieces.n_points == n and not (tmp_path / f"pieces{suffix}").exists()
+    with pytest.raises(ValueError, match="attributes"):
+        pieces.add(PointCloud(xyz[:2], {k: v[:2] for k, v in attrs.items() if k != "amplitude"}))
+    pieces.write()
+    assert (tmp_path / f"pieces{suffix}").read_bytes() == (tmp_path / f"whole{suffix}").read_bytes()
+    with pytest.raises(ValueError, match="no piece"):
+        LasPieces(tmp_path / f"none{suffix}").write()
+
+
 # ==========================================================================================
 # CSV tables
 # ==========================================================================================

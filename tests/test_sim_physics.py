@@ -235,6 +235,32 @@ def test_worker_processes_give_the_serial_result(backend):
 
 
 @pytest.mark.parametrize("workers", [1, 2])
+def test_simulate_to_las_writes_what_simulate_and_write_points_write(tmp_path, workers):
+    """The returns written block by block are the bytes of the joined result written at once,
+    with the same counts, over a region and without one; a survey whose pulses all miss the
+    region still writes an (empty) file."""
+    from vlsforest.sim import simulate_to_las, write_points
+
+    rng = np.random.default_rng(5)
+    sc = Scene()
+    sc.add_plane(1, 0.0, [-30, -30, 30, 30])
+    ijk = np.unique(np.floor(rng.uniform([-2, -2, 4], [2, 2, 10], size=(2000, 3)) / 0.25).astype(int), axis=0)
+    sc.add_voxels(2, ijk, np.zeros(3), 0.25, material=Material(0.5))
+    ov = {"prf_hz": 20000, "scan_freq_hz": 40, "scan_angle_deg": 20.0, "max_scan_angle_deg": 20.0,
+          "range_min_m": 0.0}
+    sv = _survey(ov, _line(-5, 5, 60.0), speed=4.0)
+    for region in (None, [-3.0, -3.0, 3.0, 3.0], [100.0, 100.0, 101.0, 101.0]):
+        res = simulate(sc, sv, workers=workers, seed=4, block_slots=3000, keep_pulses=False, region=region)
+        write_points(tmp_path / "joined.laz", res)
+        t = simulate_to_las(sc, sv, tmp_path / "blocks.laz", seed=4, workers=workers, block_slots=3000,
+                            region=region)
+        assert (tmp_path / "blocks.laz").read_bytes() == (tmp_path / "joined.laz").read_bytes()
+        assert {k: t[k] for k in ("n_pulses", "n_rays", "n_points")} == \
+               {k: res.timings[k] for k in ("n_pulses", "n_rays", "n_points")}
+        assert t["n_pulses"] > 10000 and (t["n_points"] > 1000) == (region != [100.0, 100.0, 101.0, 101.0])
+
+
+@pytest.mark.parametrize("workers", [1, 2])
 def test_trace_hits_equals_hit_pulses_without_detection(workers):
     rng = np.random.default_rng(2)
     sc = Scene()

@@ -34,7 +34,8 @@ def register(sub) -> None:
 def run(args) -> int:
     """Execute ``vlsforest simulate``."""
     from vlsforest.io.atomic import write_text
-    from vlsforest.sim import Scene, load_survey, save_hits, simulate, write_points, write_pulses
+    from vlsforest.sim import (Scene, load_survey, save_hits, simulate, simulate_to_las, write_points,
+                               write_pulses)
 
     if not args.region_margin >= 0:
         from vlsforest.errors import ConfigError
@@ -64,14 +65,18 @@ def run(args) -> int:
                   f"{scene.max_voxel_size:g} m cells reach that far beyond the targets' points)", file=sys.stderr)
             m = reach
         region = [ext[0] - m, ext[1] - m, ext[2] + m, ext[3] + m]
-    res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
-                   keep_pulses=args.pulses is not None, progress=not args.quiet, region=region)
-    write_points(args.output, res)
-    if args.pulses:
-        write_pulses(args.pulses, res)
-    if args.hits:
-        save_hits(args.hits, res, scene, survey.scanner)
-    t = res.timings
+    if args.pulses or args.hits:
+        res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
+                       keep_pulses=args.pulses is not None, progress=not args.quiet, region=region)
+        write_points(args.output, res)
+        if args.pulses:
+            write_pulses(args.pulses, res)
+        if args.hits:
+            save_hits(args.hits, res, scene, survey.scanner)
+        t = res.timings
+    else:  # the returns go to the file block by block: no pulse table, no joined cloud
+        t = simulate_to_las(scene, survey, args.output, seed=args.seed, workers=args.workers,
+                            progress=not args.quiet, region=region)
     if args.timing:
         import json
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
+from vlsforest._memory import release_freed_memory
 from vlsforest.errors import InputDataError
 from vlsforest.io.atomic import atomic_path
 
@@ -210,38 +211,101 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
     Path
         The path written.
     """
-    path = Path(path)
+    attrs = dict(cloud.attrs)
+    if extra:
+        attrs.update(extra)
+    pieces = LasPieces(path)
+    pieces.add(PointCloud(cloud.xyz, attrs))
+    return pieces.write()
+
+
+class LasPieces:
+    """A LAS/LAZ file gathered piece by piece and written at once: the bytes :func:`write_las`
+    writes for the pieces joined.
+
+    Each piece's attributes are packed into point records when it is added (what a point keeps
+    until the write: its float64 coordinates and its record); the offsets, the whole metres
+    below the smallest coordinate of all pieces, are known at the write, which then places the
+    coordinates piece by piece into one array of records, freeing each piece as it goes. A
+    simulation adds its returns block by block without ever holding them as one cloud.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output file (LAZ if it ends in ``.laz``); written only by :meth:`write`.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._header = None
+        self._dtypes = None
+        self._pieces = []
+        self._lo = np.full(3, np.inf)
+        self.n_points = 0
+
+    def add(self, cloud: PointCloud) -> None:
+        """Pack a piece's points into records (every piece has the first one's attributes)."""
+        attrs = {k: np.asarray(v) for k, v in cloud.attrs.items()}
+        dtypes = {k: v.dtype for k, v in attrs.items()}
+        if self._header is None:
+            self._header, self._dtypes = _las_header(attrs), dtypes
+        elif dtypes != self._dtypes:
+            raise ValueError(f"{self.path}: a piece with the attributes {dtypes}, the first had {self._dtypes}")
+        xyz = cloud.xyz
+        if len(xyz):
+            self._lo = np.minimum(self._lo, [xyz[:, k].min() for k in range(3)])  # per column: ≈ 10× faster
+        self._pieces.append((xyz, _las_records(self.path, self._header, attrs, len(xyz))))
+        self.n_points += len(xyz)
+
+    def write(self) -> Path:
+        """Write the file (whole or not at all) and return its path; the pieces are released."""
+        if self._header is None:
+            raise ValueError(f"{self.path}: no piece of points to write")
+        header, pieces = self._header, self._pieces
+        header.offsets = np.floor(self._lo) if self.n_points else np.zeros(3)
+        if len(pieces) == 1:
+            xyz, rec = pieces.pop()
+            _place_xyz(self.path, header, rec, xyz)
+        else:
+            rec = np.empty(self.n_points, dtype=header.point_format.dtype())
+            at = freed = 0
+            while pieces:
+                xyz, part = pieces.pop(0)
+                n = len(part)
+                rec[at:at + n] = part
+                _place_xyz(self.path, header, rec[at:at + n], xyz)
+                at += n
+                freed += xyz.nbytes + part.nbytes
+                del xyz, part
+                if freed > 64 << 20:  # the pieces' pages back to the system while the records fill
+                    release_freed_memory()
+                    freed = 0
+        _write_records(self.path, header, rec)
+        return self.path
+
+
+def _las_header(attrs: dict) -> laspy.LasHeader:
+    """Point format 6 header, its extra dimensions those of ``attrs`` (offsets not yet set)."""
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.creation_date = _creation_date()
     header.generating_software = "vlsforest"
     header.system_identifier = "vlsforest"
-    xyz = cloud.xyz
-    if len(xyz):
-        header.offsets = np.floor([xyz[:, k].min() for k in range(3)])  # per column: ≈ 10× faster than axis=0
-    else:
-        header.offsets = np.zeros(3)
     header.scales = np.array([_SCALE, _SCALE, _SCALE])
-    attrs = dict(cloud.attrs)
-    if extra:
-        attrs.update(extra)
     for name, arr in attrs.items():
         if name in _STANDARD or name == "scan_angle" or name in _FLAGS:
             continue
-        arr = np.asarray(arr)
         header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=arr.dtype))
+    return header
+
+
+def _las_records(path: Path, header, attrs: dict, n: int) -> np.ndarray:
+    """Point records of ``n`` points with every field but the coordinates filled from ``attrs``."""
     # the point records are filled field by field in one structured array (what laspy's
     # per-dimension setters produce, without their re-allocations and range checks)
-    rec = np.zeros(len(xyz), dtype=header.point_format.dtype())
-    for i, ax in enumerate("XYZ"):
-        q = np.round((xyz[:, i] - header.offsets[i]) / header.scales[i])
-        lim = np.iinfo(np.int32)
-        if len(q) and (q.max() > lim.max or q.min() < lim.min):
-            raise InputDataError(f"{path}: coordinates too far apart for the 0.1 mm LAS scale")
-        rec[ax] = q
-    bits = np.zeros(len(xyz), dtype=np.uint8)
-    flags = np.zeros(len(xyz), dtype=np.uint8)
+    rec = np.zeros(n, dtype=header.point_format.dtype())
+    bits = np.zeros(n, dtype=np.uint8)
+    flags = np.zeros(n, dtype=np.uint8)
     for name, arr in attrs.items():
-        arr = np.asarray(arr)
         if name in _FLAGS:
             bit, width = _FLAGS[name]
             flags |= (arr.astype(np.uint8) & ((1 << width) - 1)) << bit
@@ -258,8 +322,21 @@ def write_las(path, cloud: PointCloud, extra: dict | None = None) -> Path:
             rec[name] = arr
     rec["bit_fields"] = bits
     rec["classification_flags"] = flags
+    return rec
+
+
+def _place_xyz(path: Path, header, rec: np.ndarray, xyz: np.ndarray) -> None:
+    """The coordinates into ``rec``, quantised with the header's offsets and scales."""
+    lim = np.iinfo(np.int32)
+    for i, ax in enumerate("XYZ"):
+        q = np.round((xyz[:, i] - header.offsets[i]) / header.scales[i])
+        if len(q) and (q.max() > lim.max or q.min() < lim.min):
+            raise InputDataError(f"{path}: coordinates too far apart for the 0.1 mm LAS scale")
+        rec[ax] = q
+
+
+def _write_records(path: Path, header, rec: np.ndarray) -> None:
     # straight to the writer: a LasData would compute the header's bounds and counts a second time
     with atomic_path(path) as tmp, open(tmp, "wb+") as out, \
             laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz", closefd=False) as writer:
         writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
-    return path

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from vlsforest._memory import release_freed_memory
 from vlsforest.errors import ConfigError, InputDataError, VlsforestError
 from vlsforest.sim.beam import cones_meet_box, subray_directions, subray_pattern, subray_rays32
 from vlsforest.sim.waveform import (atmospheric_alpha, detect_embree, detect_returns, detect_traced,
@@ -573,6 +574,7 @@ def _concat_freeing(dicts):
     out = {}
     for k in list(dicts[0]):
         out[k] = np.concatenate([d.pop(k) for d in dicts])
+        release_freed_memory()  # the blocks' arrays of this key, before the next key's result
     return out
 
 
@@ -615,21 +617,54 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     results = list(_run_blocks(job, workers, progress, t0))
     if not results:
         results = [_empty_block(job)]
-    points = _concat([r[0] for r in results])
-    pulses = _concat([r[1] for r in results])
+    n_rays = int(sum(r[3] for r in results))
     hits = None
     if keep_hits:
-        offs = np.cumsum([0] + [len(r[1]["slot"]) for r in results[:-1]])
-        parts = []
-        for off, r in zip(offs, results):
-            h = dict(r[2])
-            h["pulse"] = h["pulse"] + off
-            parts.append(h)
-        hits = _concat(parts)
-    n_rays = int(sum(r[3] for r in results))
+        off = 0
+        for r in results:  # each block's pulse indices, offset by the pulses of the blocks before it
+            r[2]["pulse"] = r[2]["pulse"] + off
+            off += len(r[1]["slot"])
+        hits = _concat_freeing([r[2] for r in results])
+    points = _concat_freeing([r[0] for r in results])
+    pulses = _concat_freeing([r[1] for r in results])
+    del results
     timings = dict(total=time.perf_counter() - t0, n_pulses=len(pulses["slot"]), n_rays=n_rays,
                    n_points=len(points["xyz"]))
     return SimulationResult(points, pulses, hits, timings)
+
+
+def simulate_in_blocks(scene, survey, seed: int | None = None, workers: int | None = None,
+                       block_slots: int = 20000, progress: bool = False, region=None):
+    """Run a survey as :func:`simulate` does and yield its returns block by block.
+
+    For a consumer that writes the returns as they come (:func:`vlsforest.sim.output.simulate_to_las`)
+    and keeps neither the pulse table nor the hits: the blocks' points joined are
+    ``simulate(...).points`` with the same arguments.
+
+    Parameters
+    ----------
+    scene, survey, seed, workers, block_slots, progress, region
+        As for :func:`simulate`.
+
+    Yields
+    ------
+    points : dict of ndarray
+        The block's returns (the keys of :attr:`SimulationResult.points`); at least one block,
+        empty for a survey without slots.
+    n_pulses : int
+        The block's emitted pulses.
+    n_rays : int
+        The block's traced sub-rays.
+    """
+    seed = survey.seed if seed is None else seed
+    job = _Job(scene, survey, seed, False, block_slots, False, _check_region(region))
+    empty = True
+    for points, pulses, _, n_rays in _run_blocks(job, workers, progress, time.perf_counter()):
+        empty = False
+        yield points, len(pulses["slot"]), int(n_rays)
+    if empty:
+        points, pulses, _, n_rays = _empty_block(job)
+        yield points, 0, 0
 
 
 def trace_hits(scene, survey, seed: int | None = None, workers: int | None = None, block_slots: int = 20000,

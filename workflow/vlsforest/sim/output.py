@@ -17,14 +17,16 @@ every array (:func:`vlsforest.io.npz.load_npz`).
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 
 from vlsforest.errors import InputDataError
 from vlsforest.io.atomic import atomic_path
-from vlsforest.io.las import PointCloud, write_las
+from vlsforest.io.las import LasPieces, PointCloud, write_las
 from vlsforest.io.npz import ArraySpec, load_npz, save_npz
+from vlsforest.sim.engine import simulate_in_blocks
 
 _PULSE_COLS = ("slot", "gps_time", "origin", "direction", "scan_dir", "scan_angle", "source_id", "n_returns")
 #: the documented suffixes of the outputs
@@ -79,9 +81,8 @@ def beam_mismatch(stored: dict, scanner) -> list[str]:
                                                   rtol=1e-12, atol=0.0)]
 
 
-def write_points(path, result) -> Path:
-    """Write the returns of a :class:`SimulationResult` as LAS/LAZ."""
-    p = result.points
+def _las_attrs(p: dict) -> dict:
+    """A simulation's returns as the attributes of a LAS file (the order of its fields)."""
     attrs = {k: p[k] for k in ("intensity", "return_number", "number_of_returns", "gps_time", "scan_angle",
                                "classification")}
     attrs["point_source_id"] = p["point_source_id"]
@@ -89,7 +90,46 @@ def write_points(path, result) -> Path:
     attrs["amplitude"] = p["amplitude"].astype(np.float32)
     if "label" in p:
         attrs["label"] = p["label"].astype(np.uint8)
-    return write_las(path, PointCloud(p["xyz"], attrs))
+    return attrs
+
+
+def write_points(path, result) -> Path:
+    """Write the returns of a :class:`SimulationResult` as LAS/LAZ."""
+    return write_las(path, PointCloud(result.points["xyz"], _las_attrs(result.points)))
+
+
+def simulate_to_las(scene, survey, path, seed: int | None = None, workers: int | None = None,
+                    block_slots: int = 20000, progress: bool = False, region=None) -> dict:
+    """Run a survey and write its returns as LAS/LAZ, block by block.
+
+    The file holds the bytes ``write_points(path, simulate(scene, survey, ...))`` writes, without
+    the run ever holding its returns as one cloud or any pulse table: each block's returns are
+    packed into point records as they arrive (:class:`vlsforest.io.las.LasPieces`, 62 bytes a
+    return until the write), which is what the peak memory of a long survey comes to.
+
+    Parameters
+    ----------
+    scene, survey, seed, workers, block_slots, progress, region
+        As for :func:`vlsforest.sim.engine.simulate`.
+    path : str or Path
+        The LAS/LAZ file (written whole or not at all).
+
+    Returns
+    -------
+    dict
+        The timings and counts of :attr:`SimulationResult.timings`: ``total`` (seconds of the
+        simulation, the write not included), ``n_pulses``, ``n_rays``, ``n_points``.
+    """
+    t0 = time.perf_counter()
+    pieces = LasPieces(path)
+    n_pulses = n_rays = 0
+    for points, pulses, rays in simulate_in_blocks(scene, survey, seed=seed, workers=workers,
+                                                   block_slots=block_slots, progress=progress, region=region):
+        pieces.add(PointCloud(points.pop("xyz"), _las_attrs(points)))
+        n_pulses, n_rays = n_pulses + pulses, n_rays + rays
+    timings = dict(total=time.perf_counter() - t0, n_pulses=n_pulses, n_rays=n_rays, n_points=pieces.n_points)
+    pieces.write()
+    return timings
 
 
 def write_pulses(path, result) -> Path:
