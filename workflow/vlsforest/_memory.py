@@ -15,6 +15,10 @@ no trimming, no ``mmap`` allocations) and to small pages (``prctl(PR_SET_THP_DIS
 outputs do not change, only where the bytes live; the price is a higher peak resident size
 (+10 % on the quick forest's diagnosis). A process started with its own ``MALLOC_*`` or
 ``GLIBC_TUNABLES`` settings is left as it is; without glibc on Linux nothing changes.
+
+Without the tuning, :func:`release_freed_memory` hands the heap pages a step has freed back to
+the system where it frees many arrays while it fills a large one (a simulation's blocks joined
+or written), so that the two are not resident together.
 """
 
 from __future__ import annotations
