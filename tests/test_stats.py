@@ -705,7 +705,7 @@ def test_f4_cause_from_what_the_pulses_reach():
     cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
     reach, rest = cause.split("not established for")
     assert reach.startswith("what the pulses reach") and "uls hmean" in reach and "als hmean" not in reach
-    assert "more of them end on the columns' top cubes (uls +6 pp), and the columns' cubes, moved apart, cover " \
+    assert "more of them end on the columns' top cubes (uls +6.0 pp), and the columns' cubes, moved apart, cover " \
            "more of the crown seen from above (+15 %)" in reach
     assert "als hmean" in rest
     assert "uls hmean predicted -0.007 m (95 % CI -0.008 to -0.006), simulated +0.010 m" in exp
@@ -715,7 +715,7 @@ def test_f4_cause_from_what_the_pulses_reach():
     # the cover does not rise: the cause names the top cubes alone
     extra["cover"]["change_pct"] = mean(1.0, 1.0)
     f, _ = _findings(m, vc, tt, experiments={"cog_shift": _cog_shift_experiment(pred, diff, reached, extra)})
-    assert "(uls +6 pp); not established" in f["F4"]["cause"] and "seen from above" not in f["F4"]["cause"]
+    assert "(uls +6.0 pp); not established" in f["F4"]["cause"] and "seen from above" not in f["F4"]["cause"]
 
 
 def _outline_summary(outline, unseen, base):

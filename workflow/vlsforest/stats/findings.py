@@ -698,7 +698,7 @@ def _reach_why(shift_result, scenarios) -> str:
     on the columns' top cubes, and the columns' cubes, moved apart, covering more of the crown
     seen from above (each only where its 95 % interval lies above zero)."""
     shares = shift_result.get("top_share") or {}
-    up = [f"{sc} {100 * shares[sc]['change']['mean']:+.0f} pp" for sc in scenarios
+    up = [f"{sc} {100 * shares[sc]['change']['mean']:+.1f} pp" for sc in scenarios
           if sc in shares and _above_zero(shares[sc].get("change"))]
     cover = (shift_result.get("cover") or {}).get("change_pct")
     out = ""
