@@ -534,6 +534,9 @@ def _run_blocks(job: _Job, workers, progress, t0):
         raise ConfigError(f"workers must be an integer ≥ 1 (None: all CPUs), got {workers!r}")
     survey, scene = job.survey, job.scene
     n_blocks = -(-survey.n_slots // job.block_slots)
+    if n_blocks == 0:  # a survey without pulse slots: one empty block of the job's kind
+        yield _no_hit_pulses(job) if job.hits_only else _empty_block(job)
+        return
     if getattr(scene, "needs_ray_estimate", False):
         # voxel lattices to Embree or to the grid, whichever traces this survey sooner
         scene.plan_for_rays(_expected_rays(job, n_blocks))
@@ -615,8 +618,6 @@ def simulate(scene, survey, seed: int | None = None, workers: int | None = None,
     seed = survey.seed if seed is None else seed
     job = _Job(scene, survey, seed, keep_hits, block_slots, keep_pulses, _check_region(region))
     results = list(_run_blocks(job, workers, progress, t0))
-    if not results:
-        results = [_empty_block(job)]
     n_rays = int(sum(r[3] for r in results))
     hits = None
     if keep_hits:
@@ -649,8 +650,8 @@ def simulate_in_blocks(scene, survey, seed: int | None = None, workers: int | No
     Yields
     ------
     points : dict of ndarray
-        The block's returns (the keys of :attr:`SimulationResult.points`); at least one block,
-        empty for a survey without slots.
+        The block's returns (the keys of :attr:`SimulationResult.points`); one empty block for
+        a survey without slots.
     n_pulses : int
         The block's emitted pulses.
     n_rays : int
@@ -658,13 +659,8 @@ def simulate_in_blocks(scene, survey, seed: int | None = None, workers: int | No
     """
     seed = survey.seed if seed is None else seed
     job = _Job(scene, survey, seed, False, block_slots, False, _check_region(region))
-    empty = True
     for points, pulses, _, n_rays in _run_blocks(job, workers, progress, time.perf_counter()):
-        empty = False
         yield points, len(pulses["slot"]), int(n_rays)
-    if empty:
-        points, pulses, _, n_rays = _empty_block(job)
-        yield points, 0, 0
 
 
 def trace_hits(scene, survey, seed: int | None = None, workers: int | None = None, block_slots: int = 20000,
@@ -701,9 +697,6 @@ def trace_hits(scene, survey, seed: int | None = None, workers: int | None = Non
         off += len(pulses["slot"])
         pulse_parts.append(pulses)
         hit_parts.append(hits)
-    if not pulse_parts:  # a survey without pulse slots
-        _, pulses, hits, _ = _no_hit_pulses(job)
-        pulse_parts, hit_parts = [pulses], [hits]
     return _concat_freeing(pulse_parts), _concat_freeing(hit_parts)
 
 

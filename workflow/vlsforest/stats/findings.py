@@ -576,15 +576,14 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     still = list(missing)
     causes, texts = [], []
     links = {"hmean": "z", "height": "z", "cpa": "radial"}
-    interval = _mean_interval
     if shift_result:
         summ = shift_result.get("summary") or {}
         still_moving, too_small, reached, parts = [], [], [], []
         for part in missing:
             sc, metric = part.split()[0], part.split()[-1]
             v = (summ.get(sc) or {}).get(metric) or {}
-            p, sim, diff = v.get("predicted"), v.get("simulated"), interval(v.get("difference"))
-            ci = interval(p)
+            p, sim, diff = v.get("predicted"), v.get("simulated"), _mean_interval(v.get("difference"))
+            ci = _mean_interval(p)
             if ci is None:
                 continue
             unit = _unit(metric)
@@ -592,7 +591,7 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                     f"simulated {sim['mean']:+.3f} {unit}")
             if diff is not None:
                 text += f" (simulated − predicted 95 % CI {diff[0]:+.3f} to {diff[1]:+.3f})"
-            reach = interval(v.get("reached"))
+            reach = _mean_interval(v.get("reached"))
             if reach is not None:
                 text += (f", reached {v['reached']['mean']:+.3f} {unit} "
                          f"(95 % CI {reach[0]:+.3f} to {reach[1]:+.3f})")
