@@ -526,10 +526,13 @@ def test_las_flag_fields_round_trip_as_standard_fields(tmp_path):
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
-def test_las_pieces_write_the_bytes_of_the_joined_cloud(tmp_path, suffix):
+@pytest.mark.parametrize("spill_bytes", [None, 1, 200_000])
+def test_las_pieces_write_the_bytes_of_the_joined_cloud(tmp_path, suffix, spill_bytes):
     """A file gathered in pieces (one of them empty, the smallest coordinates in the last) holds
-    the bytes write_las writes for the pieces joined; a piece with other attributes is refused,
-    and nothing is written before write()."""
+    the bytes write_las writes for the pieces joined, whether the earlier pieces stay in memory,
+    all go to the temporary file (spill_bytes 1) or some do (200 kB: the first four of the
+    seven pieces); a piece with other attributes is refused, nothing is written before write(),
+    and nothing but the file is left in its folder."""
     from vlsforest.io.las import LasPieces, PointCloud, write_las
 
     rng = np.random.default_rng(3)
@@ -541,14 +544,15 @@ def test_las_pieces_write_the_bytes_of_the_joined_cloud(tmp_path, suffix):
              "gps_time": rng.random(n) * 100, "scan_angle": rng.normal(size=n) * 20,
              "object_id": rng.integers(0, 9, n).astype(np.int32), "amplitude": rng.random(n).astype(np.float32)}
     write_las(tmp_path / f"whole{suffix}", PointCloud(xyz, attrs))
-    pieces = LasPieces(tmp_path / f"pieces{suffix}")
-    for a, b in ((0, 1700), (1700, 1700), (1700, n)):
+    pieces = LasPieces(tmp_path / f"pieces{suffix}", **({} if spill_bytes is None else {"spill_bytes": spill_bytes}))
+    for a, b in ((0, 1700), (1700, 1700), (1700, 2300), (2300, 2301), (2301, 3999), (3999, 4000), (4000, n)):
         pieces.add(PointCloud(xyz[a:b], {k: v[a:b] for k, v in attrs.items()}))
     assert pieces.n_points == n and not (tmp_path / f"pieces{suffix}").exists()
     with pytest.raises(ValueError, match="attributes"):
         pieces.add(PointCloud(xyz[:2], {k: v[:2] for k, v in attrs.items() if k != "amplitude"}))
     pieces.write()
     assert (tmp_path / f"pieces{suffix}").read_bytes() == (tmp_path / f"whole{suffix}").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f"pieces{suffix}", f"whole{suffix}"])
     with pytest.raises(ValueError, match="no piece"):
         LasPieces(tmp_path / f"none{suffix}").write()
 

@@ -224,22 +224,32 @@ class LasPieces:
     writes for the pieces joined.
 
     Each piece's attributes are packed into point records when it is added (what a point keeps
-    until the write: its float64 coordinates and its record); the offsets, the whole metres
-    below the smallest coordinate of all pieces, are known at the write, which then places the
-    coordinates piece by piece into one array of records, freeing each piece as it goes. A
-    simulation adds its returns block by block without ever holding them as one cloud.
+    until the write: its float64 coordinates and its record, 62 bytes for a simulation's
+    returns); the offsets, the whole metres below the smallest coordinate of all pieces, are
+    known only at the write. Pieces beyond ``spill_bytes`` go to an unnamed temporary file in
+    the output's folder (removed by the system when it is closed, also on a crash) as later
+    pieces arrive, so a simulation holds about ``spill_bytes`` of returns however many it
+    makes; the last piece added stays in memory, so a single piece is never copied to disk.
+    The write places the coordinates piece by piece and hands the records to the writer one
+    piece at a time.
 
     Parameters
     ----------
     path : str or Path
         The output file (LAZ if it ends in ``.laz``); written only by :meth:`write`.
+    spill_bytes : int
+        The bytes of pieces held in memory before the earlier ones go to the temporary file.
     """
 
-    def __init__(self, path):
+    def __init__(self, path, spill_bytes: int = 128 << 20):
         self.path = Path(path)
         self._header = None
         self._dtypes = None
         self._pieces = []
+        self._held = 0
+        self._spill = None
+        self._spilled = []  # the point count of each piece in the temporary file, in order
+        self._spill_bytes = int(spill_bytes)
         self._lo = np.full(3, np.inf)
         self.n_points = 0
 
@@ -251,18 +261,58 @@ class LasPieces:
             self._header, self._dtypes = _las_header(attrs), dtypes
         elif dtypes != self._dtypes:
             raise ValueError(f"{self.path}: a piece with the attributes {dtypes}, the first had {self._dtypes}")
+        if self._held > self._spill_bytes:
+            self._spill_pieces()
         xyz = cloud.xyz
         if len(xyz):
             self._lo = np.minimum(self._lo, [xyz[:, k].min() for k in range(3)])  # per column: ≈ 10× faster
-        self._pieces.append((xyz, _las_records(self.path, self._header, attrs, len(xyz))))
+        rec = _las_records(self.path, self._header, attrs, len(xyz))
+        self._pieces.append((xyz, rec))
+        self._held += xyz.nbytes + rec.nbytes
         self.n_points += len(xyz)
+
+    def _spill_pieces(self) -> None:
+        """The pieces held in memory to the end of the temporary file."""
+        import tempfile
+
+        if self._spill is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._spill = tempfile.TemporaryFile(dir=self.path.parent, prefix=f".{self.path.name}.pieces-")
+        for xyz, rec in self._pieces:
+            self._spill.write(np.ascontiguousarray(xyz, dtype=np.float64).data)
+            self._spill.write(rec.data)
+            self._spilled.append(len(rec))
+        self._pieces, self._held = [], 0
+        release_freed_memory()
+
+    def _read_spilled(self):
+        """The temporary file's pieces, ``(xyz, records)`` in the order they were added."""
+        f, dtype = self._spill, self._header.point_format.dtype()
+        f.flush()
+        f.seek(0)
+        for n in self._spilled:
+            xyz = np.empty((n, 3), dtype=np.float64)
+            rec = np.empty(n, dtype=dtype)
+            for buf in (xyz, rec):
+                view = buf.view(np.uint8).reshape(-1)
+                if f.readinto(view) != len(view):
+                    raise OSError(f"{self.path}: the temporary file of its pieces ends early")
+            yield xyz, rec
 
     def write(self) -> Path:
         """Write the file (whole or not at all) and return its path; the pieces are released."""
         if self._header is None:
             raise ValueError(f"{self.path}: no piece of points to write")
-        header, pieces = self._header, self._pieces
+        header = self._header
         header.offsets = np.floor(self._lo) if self.n_points else np.zeros(3)
+        if self._spill is not None:
+            try:
+                self._write_spilled(header)
+            finally:
+                self._spill.close()
+                self._spill, self._spilled = None, []
+            return self.path
+        pieces = self._pieces
         if len(pieces) == 1:
             xyz, rec = pieces.pop()
             _place_xyz(self.path, header, rec, xyz)
@@ -280,8 +330,23 @@ class LasPieces:
                 if freed > 64 << 20:  # the pieces' pages back to the system while the records fill
                     release_freed_memory()
                     freed = 0
-        _write_records(self.path, header, rec)
+        self._held = 0
+        _write_records(self.path, header, [rec])
         return self.path
+
+    def _write_spilled(self, header) -> None:
+        """Write the temporary file's pieces, then those in memory, one piece at a time."""
+        def placed():
+            for xyz, rec in self._read_spilled():
+                _place_xyz(self.path, header, rec, xyz)
+                yield rec
+            while self._pieces:
+                xyz, rec = self._pieces.pop(0)
+                _place_xyz(self.path, header, rec, xyz)
+                yield rec
+            self._held = 0
+
+        _write_records(self.path, header, placed())
 
 
 def _las_header(attrs: dict) -> laspy.LasHeader:
@@ -335,8 +400,32 @@ def _place_xyz(path: Path, header, rec: np.ndarray, xyz: np.ndarray) -> None:
         rec[ax] = q
 
 
-def _write_records(path: Path, header, rec: np.ndarray) -> None:
+def _write_records(path: Path, header, pieces) -> None:
+    """Write point records, given as an iterable of arrays, in one file (whole or not at all):
+    the bytes of one write of the records joined."""
     # straight to the writer: a LasData would compute the header's bounds and counts a second time
     with atomic_path(path) as tmp, open(tmp, "wb+") as out, \
             laspy.LasWriter(out, header, do_compress=path.suffix.lower() == ".laz", closefd=False) as writer:
-        writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
+        deciding, n_written = [], 0
+        for rec in pieces:
+            if not len(rec):
+                continue
+            writer.write_points(laspy.PackedPointRecord(rec, header.point_format))
+            deciding.append(_deciding_records(rec, header, first=not n_written))
+            n_written += 1
+        extra = writer.header.vlrs.get("ExtraBytesVlr")
+        if n_written > 1 and extra:
+            # laspy keeps the extra dimensions' statistics chunk by chunk: they are set again from
+            # the records that decide them for the whole file, as one write of all records would
+            extra[0].partial_reset()
+            extra[0].grow(laspy.PackedPointRecord(np.concatenate(deciding), header.point_format))
+
+
+def _deciding_records(rec: np.ndarray, header, first: bool) -> np.ndarray:
+    """The records that decide the extra dimensions' statistics of a file: its first record
+    (``first``) and, per extra dimension, the smallest and largest one."""
+    at = [0] if first else []
+    for name in header.point_format.extra_dimension_names:
+        v = rec[name].reshape(len(rec), -1)
+        at += [*v.argmin(axis=0).tolist(), *v.argmax(axis=0).tolist()]
+    return rec[at]

@@ -105,7 +105,9 @@ def simulate_to_las(scene, survey, path, seed: int | None = None, workers: int |
     The file holds the bytes ``write_points(path, simulate(scene, survey, ...))`` writes, without
     the run ever holding its returns as one cloud or any pulse table: each block's returns are
     packed into point records as they arrive (:class:`vlsforest.io.las.LasPieces`, 62 bytes a
-    return until the write), which is what the peak memory of a long survey comes to.
+    return), and beyond 128 MB of them the earlier blocks wait in an unnamed temporary file in
+    the output's folder until the write, so a long survey's returns add at most about that
+    much to the simulation's own memory.
 
     Parameters
     ----------
