@@ -98,6 +98,8 @@ RULE_IMPORTS = {
                                                 "vlsforest.experiments.crown_outline"]),
     "experiment_shift_room": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.shift_room"]),
     "experiment_cog_shift": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.cog_shift"]),
+    "experiment_cog_parts": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.cog_parts",
+                                            "vlsforest.sim"]),
 }
 
 

@@ -461,3 +461,71 @@ def test_cli_unknown_plot_names_the_option(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("vlsforest experiment: error: --plot: unknown plot 'Z9' (known: Q1)"), err
         assert not out.exists()
+
+
+def test_partial_shift_moves_the_cubes_by_the_chosen_components():
+    """The vertical part keeps each cube's horizontal place and takes the shifted height, the
+    horizontal part the reverse, whatever the order of the shifted model's cells (a superset of
+    the unshifted ones); other cells or cube sizes are refused, naming the file."""
+    from vlsforest.errors import InputDataError
+    from vlsforest.experiments.cog_parts import partial_shift
+    from vlsforest.io.voxel_model import VoxelModel
+
+    ijk = np.array([[0, 0, 40], [0, 1, 40], [2, 1, 41]])
+    half = np.array([0.05, 0.08, 0.1])
+    base = VoxelModel(0.25, ijk, np.array([1, 1, 2]), half=half)
+    disp = np.array([[0.02, -0.01, -0.03], [0.0, 0.04, 0.01], [-0.02, 0.0, -0.02]])
+    extra = np.array([[5, 5, 5]])
+    order = [2, 0, 1]  # the shifted model's cells in another order, with one more cell
+    shifted = VoxelModel(0.25, np.vstack([ijk[order], extra]), np.array([2, 1, 1, 3]),
+                         half=np.append(half[order], 0.1),
+                         centre=np.vstack([(base.centres() + disp)[order], (extra + 0.5) * 0.25]))
+    c = base.centres()
+    v = partial_shift(base, shifted, (0, 0, 1))
+    assert np.allclose(v.centres()[:, :2], c[:, :2]) and np.allclose(v.centres()[:, 2], c[:, 2] + disp[:, 2])
+    h = partial_shift(base, shifted, (1, 1, 0))
+    assert np.allclose(h.centres()[:, :2], c[:, :2] + disp[:, :2]) and np.allclose(h.centres()[:, 2], c[:, 2])
+    assert np.array_equal(v.ijk, base.ijk) and np.array_equal(v.owner, base.owner) and np.array_equal(v.half, half)
+    assert np.allclose(partial_shift(base, shifted, (1, 1, 1)).centres(), c + disp)
+    with pytest.raises(InputDataError, match="cog.npz: 1 of the unshifted model's cells are not in it"):
+        partial_shift(VoxelModel(0.25, np.vstack([ijk, [[9, 9, 9]]]), np.ones(4, int), half=np.append(half, 0.1)),
+                      shifted, (0, 0, 1), "cog.npz")
+    with pytest.raises(InputDataError, match="cog.npz: its cubes are not the unshifted model's sizes"):
+        partial_shift(VoxelModel(0.25, ijk, np.ones(3, int), half=half * 0.5), shifted, (0, 0, 1), "cog.npz")
+    with pytest.raises(InputDataError, match="cell size 0.25 m, the unshifted model's 0.1 m"):
+        partial_shift(VoxelModel(0.1, ijk, np.ones(3, int)), shifted, (0, 0, 1), "cog.npz")
+
+
+def _cog_parts_manifest(workdir, plot="Q1", base="scaled", shifted="scaled_cog_shift", scenarios=("als", "uls")):
+    r = workdir / "results" / plot
+    return {plot: {"targets": str(r / "targets.csv"), "site": str(r / "site.json"),
+                   "surveys": {sc: str(r / "surveys" / f"{sc}.yaml") for sc in scenarios},
+                   "methods": {base: {"scene": str(r / base / "scene"), "voxels": str(r / base / "voxels.npz"),
+                                      "metrics": {sc: str(r / base / sc / "metrics.csv") for sc in scenarios}},
+                               shifted: {"voxels": str(r / shifted / "voxels.npz"),
+                                         "metrics": {sc: str(r / shifted / sc / "metrics.csv") for sc in scenarios}}}}}
+
+
+def test_cog_parts_simulates_as_the_run_does(quick_run, tmp_path):
+    """With no part of the shift and with all of it, the experiment's simulations give the run's
+    own metrics of the unshifted and the shifted model, tree by tree and digit for digit (the same
+    surveys, seeds, region and extraction); the parts' changes and the interaction add up to the
+    whole change; nothing is left in the temporary folder."""
+    from vlsforest.experiments.cog_parts import METRICS, run_cog_parts
+
+    workdir, _, _ = quick_run
+    res = run_cog_parts(_cog_parts_manifest(workdir), "scaled", "scaled_cog_shift", ["als", "uls"],
+                        {"als": 0, "uls": 0}, 1.0, tmp_path, parts={"none": (0, 0, 0), "all": (1, 1, 1)}, workers=2)
+    assert len(res["trees"]) == 4 and list(tmp_path.iterdir()) == []
+    for row in res["trees"]:
+        for sc, v in row["scenarios"].items():
+            for part, run in (("none", "base"), ("all", "shifted")):
+                for k in METRICS:
+                    a, b = v[part][k], v[run][k]
+                    assert a == b or (math.isnan(a) and math.isnan(b)), (row["target_id"], sc, part, k, a, b)
+    for sc in ("als", "uls"):
+        for k in METRICS:
+            s = res["summary"][sc][k]
+            assert s["none"]["mean"] == 0.0
+            assert s["all"]["mean"] == pytest.approx(s["whole"]["mean"], abs=1e-9)
+            assert s["interaction"]["mean"] == pytest.approx(s["whole"]["mean"] - s["all"]["mean"], abs=1e-9)

@@ -718,6 +718,34 @@ def test_f4_cause_from_what_the_pulses_reach():
     assert "(uls +6.0 pp); not established" in f["F4"]["cause"] and "seen from above" not in f["F4"]["cause"]
 
 
+def test_f4_cause_from_the_shifts_two_parts():
+    """A part the other causes leave is explained by the CoG-parts experiment when the vertical
+    part of the shift alone lowers it and the horizontal part alone raises it (95 % intervals below
+    and above zero); a part whose vertical change holds zero stays unexplained, and the experiment's
+    text gives both parts and the whole shift for each."""
+    m, vc, tt = study_like(flip=True)
+    mean = lambda x, se: {"mean": x, "se": se, "n": 20}  # noqa: E731
+    summary = {sc: {k: {"whole": mean(0.1, 0.2), "vertical": mean(0.0, 0.2), "horizontal": mean(0.0, 0.2),
+                        "interaction": mean(0.0, 0.1)} for k in ("hmean", "multi_return_pct", "height", "cpa")}
+               for sc in ("als", "uls")}
+    summary["als"]["multi_return_pct"].update(vertical=mean(-1.5, 0.3), horizontal=mean(1.6, 0.3),
+                                              whole=mean(0.2, 0.3))
+    summary["uls"]["multi_return_pct"].update(vertical=mean(-1.5, 0.3), horizontal=mean(0.4, 0.3))
+    parts = {"summary": summary, "trees": [{"plot": "P1", "target_id": t} for t in range(20)]}
+    f, _ = _findings(m, vc, tt, experiments={"cog_parts": parts})
+    cause, exp = f["F4"]["cause"], f["F4"]["experiment"]
+    against, rest = cause.split("not established for")
+    assert against.startswith("the shift's two parts act against each other")
+    assert "als multi_return_pct" in against and "uls multi_return_pct" not in against
+    assert "uls multi_return_pct" in rest and "als hmean" in rest
+    assert "CoG-parts experiment (20 target trees" in exp
+    assert ("als multi_return_pct: vertical part alone -1.50 pp (95 % CI -2.13 to -0.87), horizontal part alone "
+            "+1.60 pp (95 % CI +0.97 to +2.23), whole shift +0.20 pp (95 % CI -0.43 to +0.83)") in exp
+    # without the experiment, the share stays unexplained
+    f, _ = _findings(m, vc, tt)
+    assert "act against each other" not in f["F4"]["cause"]
+
+
 def _outline_summary(outline, unseen, base):
     part = {"error": {"mean": outline + unseen + base}, "outline": {"mean": outline}, "unseen": {"mean": unseen},
             "base": {"mean": base}, "reference_m2": 40.0}

@@ -83,13 +83,14 @@ def _expected_outputs(cfg):
 
 def _run_file_experiments(cfg, methods):
     """The enabled experiments that read the run's files of any of ``methods`` (crown outline:
-    the fixed and unshifted scaled methods' tree clouds; shift room and CoG shift: the scaled
-    methods' metrics)."""
+    the fixed and unshifted scaled methods' tree clouds; shift room, CoG shift and CoG parts: the
+    scaled methods' metrics)."""
     ms, exps = cfg["methods"], cfg.get("experiments") or {}
     reads = {"crown_outline": [m for m, e in ms.items()
                                if e["kind"] == "fixed" or (e["kind"] == "scaled" and e.get("shift", "none") == "none")],
              "shift_room": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "random")],
-             "cog_shift": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")]}
+             "cog_shift": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")],
+             "cog_parts": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")]}
     return {f"results/experiments/{name}.json" for name, used in reads.items()
             if (exps.get(name) or {}).get("enabled") and set(used) & set(methods)}
 

@@ -358,9 +358,13 @@ def run_outputs_manifest(methods):
     return out
 
 
+#: the keys of a run-outputs manifest whose values are (or hold) paths
+MANIFEST_KEYS = ("targets", "reference", "voxels", "trees", "metrics", "scene", "site", "surveys")
+
+
 def manifest_paths(manifest, keep=lambda key: True):
-    """Every path of a run-outputs manifest whose key (targets, reference, voxels, trees,
-    metrics) ``keep`` accepts: the inputs of the job that reads it."""
+    """Every path of a run-outputs manifest whose key (:data:`MANIFEST_KEYS`) ``keep`` accepts:
+    the inputs of the job that reads it."""
     out = []
 
     def walk(node, key):
@@ -369,7 +373,7 @@ def manifest_paths(manifest, keep=lambda key: True):
                 out.append(node)
         else:
             for k, v in node.items():
-                walk(v, k if k in ("targets", "reference", "voxels", "trees", "metrics") else key)
+                walk(v, k if k in MANIFEST_KEYS else key)
 
     walk(manifest, None)
     return out
@@ -411,6 +415,40 @@ def shift_room_methods():
 def cog_shift_methods():
     """The unshifted scaled method and its CoG-shift variant (the CoG-shift experiment)."""
     return shift_pair("cog_shift", "cog")
+
+
+def cog_parts_methods():
+    """The unshifted scaled method and its CoG-shift variant (the CoG-parts experiment)."""
+    return shift_pair("cog_parts", "cog")
+
+
+def cog_parts_scenarios():
+    """The scenarios the CoG-parts experiment simulates: ``experiments.cog_parts.scenarios``,
+    else every scenario."""
+    named = experiment_setting("cog_parts", "scenarios")
+    if named:
+        unknown = [sc for sc in named if sc not in SCENARIOS]
+        if unknown:
+            raise WorkflowError(f"Invalid configuration at 'experiments.cog_parts.scenarios': "
+                                f"{', '.join(map(repr, unknown))} is not a configured scenario ({', '.join(SCENARIOS)})")
+        return list(named)
+    return list(SCENARIOS)
+
+
+def cog_parts_manifest():
+    """The files the CoG-parts experiment reads, by plot: the run-outputs manifest of its two
+    methods (their voxel models and metrics) with each plot's site and surveys and the
+    unshifted method's scene folder."""
+    base, shifted = cog_parts_methods()
+    out = {}
+    for plot, entry in run_outputs_manifest([base, shifted]).items():
+        scenarios = cog_parts_scenarios()
+        methods = {m: {"voxels": e["voxels"], "metrics": {sc: e["metrics"][sc] for sc in scenarios}}
+                   for m, e in entry["methods"].items()}
+        methods[base]["scene"] = f"results/{plot}/{base}/scene"
+        out[plot] = {"targets": entry["targets"], "site": f"results/{plot}/site.json",
+                     "surveys": {sc: f"results/{plot}/surveys/{sc}.yaml" for sc in scenarios}, "methods": methods}
+    return out
 
 
 def enabled_experiments():
@@ -490,9 +528,14 @@ def scenario_param(wildcards):
     return json.dumps(block, sort_keys=True)
 
 
-def scenario_seed(wildcards):
+def seed_of_scenario(scenario):
     """The scenario's own ``seed`` if it sets one, else the study's master ``seed``."""
-    return int(config["scenarios"][wildcards.scenario].get("seed", config["seed"]))
+    return int(config["scenarios"][scenario].get("seed", config["seed"]))
+
+
+def scenario_seed(wildcards):
+    """The seed of the ``{scenario}`` wildcard's simulations (:func:`seed_of_scenario`)."""
+    return seed_of_scenario(wildcards.scenario)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -136,3 +136,35 @@ rule experiment_cog_shift:
     shell:
         "vlsforest experiment cog-shift --inputs-json {params.inputs:q} --base {params.base} "
         "--shifted {params.shifted} --scenarios {params.scenarios} -o {output} > {log} 2>&1"
+
+
+rule experiment_cog_parts:
+    # simulates the CoG shift's vertical and horizontal parts apart, with the run's surveys, seeds
+    # and simulation region (two simulations per plot and scenario)
+    input:
+        lambda wildcards: manifest_paths(cog_parts_manifest()),
+    output:
+        "results/experiments/cog_parts.json",
+    log:
+        "logs/experiments/cog_parts.log",
+    benchmark:
+        "logs/benchmarks/experiments/cog_parts.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    threads: 16
+    resources:
+        mem_mb=simulate_mem_mb,
+        runtime=simulate_runtime,
+    params:
+        inputs=lambda wildcards: json.dumps(cog_parts_manifest(), sort_keys=True),
+        base=lambda wildcards: cog_parts_methods()[0],
+        shifted=lambda wildcards: cog_parts_methods()[1],
+        scenarios=lambda wildcards: " ".join(cog_parts_scenarios()),
+        seeds=lambda wildcards: json.dumps({sc: seed_of_scenario(sc) for sc in cog_parts_scenarios()},
+                                           sort_keys=True),
+        margin=config["simulation"]["region_margin_m"],
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment cog-parts --inputs-json {params.inputs:q} --base {params.base} "
+        "--shifted {params.shifted} --scenarios {params.scenarios} --seeds-json {params.seeds:q} "
+        "--region-margin {params.margin} --workers {threads} -o {output} > {log} 2>&1"

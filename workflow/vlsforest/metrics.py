@@ -85,6 +85,9 @@ from scipy.spatial import ConvexHull, QhullError
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud
 
+#: the number format of the per-tree metrics tables (``vlsforest metrics``, ``vlsforest extract --metrics``)
+FLOAT_FORMAT = "%.6f"
+
 __all__ = [
     "METRIC_COLUMNS",
     "PERCENTILES",

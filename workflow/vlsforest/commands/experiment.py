@@ -19,7 +19,11 @@ shift changes (:func:`vlsforest.experiments.shift_room.run_shift_room`).
 ``vlsforest experiment cog-shift --inputs-json JSON --base scaled --shifted scaled_cog_shift
 --scenarios als uls -o cog_shift.json`` predicts each target tree's change under the CoG shift from
 the cubes its returns lie on, sets it beside the simulated change and splits off what the
-shifted model's pulses reach (:func:`vlsforest.experiments.cog_shift.run_cog_shift`). ``--inputs-json`` names the run's files
+shifted model's pulses reach (:func:`vlsforest.experiments.cog_shift.run_cog_shift`).
+``vlsforest experiment cog-parts --inputs-json JSON --base scaled --shifted scaled_cog_shift
+--scenarios als uls --seeds-json JSON --region-margin 1 -o cog_parts.json`` simulates the CoG
+shift's vertical and horizontal parts apart with the run's surveys and seeds
+(:func:`vlsforest.experiments.cog_parts.run_cog_parts`). ``--inputs-json`` names the run's files
 (:mod:`vlsforest.experiments.run_outputs`).
 
 Same config and seed give the same bytes.
@@ -97,6 +101,22 @@ def register(subparsers) -> argparse.ArgumentParser:
     g.add_argument("--margin", type=float, default=None, metavar="M",
                    help="a return comes from a cube within this distance (m) of it (default: half the cell)")
     _result_file(g)
+    q = sub.add_parser("cog-parts", help="the CoG shift's vertical and horizontal parts, simulated apart",
+                       description="Move the unshifted scaled cubes by only the vertical or only the horizontal "
+                                   "part of their CoG displacement, simulate each with the run's surveys, seeds "
+                                   "and region, and set the target trees' changes beside the whole shift's.")
+    q.add_argument("--inputs-json", required=True, metavar="JSON",
+                   help=inputs_help + "; each plot also with its site (site.json) and surveys (scenario → "
+                                      "SURVEY.yaml), the base method with its scene (the folder of its SCENE.yaml)")
+    q.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
+    q.add_argument("--shifted", required=True, metavar="METHOD", help="its CoG-shift variant")
+    q.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios simulated")
+    q.add_argument("--seeds-json", required=True, metavar="JSON",
+                   help="scenario → the seed of its simulations in the run")
+    q.add_argument("--region-margin", type=float, required=True, metavar="M",
+                   help="the simulation region's margin around the targets (m; the run's simulation.region_margin_m)")
+    q.add_argument("--workers", type=int, default=1, metavar="N", help="simulation worker processes (default 1)")
+    _result_file(q)
     return p
 
 
@@ -135,7 +155,7 @@ def run(args) -> int:
     """Execute ``vlsforest experiment`` with parsed ``args``; return 0."""
     from vlsforest.io.atomic import write_text
 
-    if args.experiment in ("crown-outline", "shift-room", "cog-shift"):
+    if args.experiment in ("crown-outline", "shift-room", "cog-shift", "cog-parts"):
         return _run_on_outputs(args, write_text)
     cfg = _json_object(args.config_json, "--config-json")
     seed = cfg.get("seed", 0)
@@ -169,8 +189,23 @@ def run(args) -> int:
 
 def _run_on_outputs(args, write_text) -> int:
     """The experiments that take a finished run's files apart (``crown-outline``, ``shift-room``,
-    ``cog-shift``)."""
+    ``cog-shift``, ``cog-parts``)."""
     manifest = _json_object(args.inputs_json, "--inputs-json")
+    if args.experiment == "cog-parts":
+        from vlsforest.commands import check_workers
+        from vlsforest.experiments.cog_parts import run_cog_parts
+
+        check_workers(args.workers)
+        res = run_cog_parts(manifest, args.base, args.shifted, args.scenarios,
+                            _json_object(args.seeds_json, "--seeds-json"), args.region_margin,
+                            tmp_dir=args.output.parent, workers=args.workers, progress=_log("cog-parts"))
+        write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+        for sc, per in res["summary"].items():
+            for k, v in per.items():
+                print(f"vlsforest experiment cog-parts: {sc} {k}: whole {v['whole']['mean']:+.3f} = vertical "
+                      f"{v['vertical']['mean']:+.3f} + horizontal {v['horizontal']['mean']:+.3f} + interaction "
+                      f"{v['interaction']['mean']:+.3f}")
+        return 0
     if args.experiment == "crown-outline":
         from vlsforest.experiments.crown_outline import run_crown_outline
 

@@ -19,9 +19,6 @@ from vlsforest.commands import CSV, declare_outputs
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.atomic import write_csv
 
-#: fixed float format of the CSV
-FLOAT_FORMAT = "%.6f"
-
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``metrics`` sub-command to ``subparsers``."""
@@ -83,7 +80,7 @@ def write_metrics(cloud, tree_field: str, ground, output: Path, *, source: str, 
     row (NaN metrics where it has no point). Warnings of the metrics go to stderr once each,
     prefixed with ``prog``. Returns the table.
     """
-    from vlsforest.metrics import cloud_metrics
+    from vlsforest.metrics import FLOAT_FORMAT, cloud_metrics
 
     if tree_field not in cloud.attrs:
         raise InputDataError(f"{source}: no tree-id field {tree_field!r} (fields: {', '.join(sorted(cloud.attrs))})")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 
 from vlsforest.commands import JSON, LAS, NPZ, PULSES, check_workers, declare_outputs
@@ -46,25 +45,14 @@ def run(args) -> int:
     survey = load_survey(args.survey)
     region = args.region
     if args.region_from is not None:
-        import json
-        from pathlib import Path
+        from vlsforest.sim.scene_file import targets_region
 
-        from vlsforest.errors import InputDataError
-
-        src = Path(args.region_from)
-        try:
-            ext = json.loads(src.read_text())["targets_extent"]
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise InputDataError(f"{src}: no 'targets_extent' to take the region from ({exc})") from None
-        m = float(args.region_margin)
-        # a target's voxels reach one cell diagonal beyond its TLS points (the extent's source):
-        # a narrower margin would lose returns of the outermost cells
-        reach = math.sqrt(2.0) * scene.max_voxel_size
-        if m < reach:
-            print(f"simulate: region margin widened from {m:g} to {reach:.3f} m (the scene's "
+        region, m = targets_region(args.region_from, float(args.region_margin), scene.max_voxel_size)
+        if m > args.region_margin:
+            # a target's voxels reach one cell diagonal beyond its TLS points (the extent's source):
+            # a narrower margin would lose returns of the outermost cells
+            print(f"simulate: region margin widened from {args.region_margin:g} to {m:.3f} m (the scene's "
                   f"{scene.max_voxel_size:g} m cells reach that far beyond the targets' points)", file=sys.stderr)
-            m = reach
-        region = [ext[0] - m, ext[1] - m, ext[2] + m, ext[3] + m]
     if args.pulses or args.hits:
         res = simulate(scene, survey, seed=args.seed, workers=args.workers, keep_hits=args.hits is not None,
                        keep_pulses=args.pulses is not None, progress=not args.quiet, region=region)

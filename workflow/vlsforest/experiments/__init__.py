@@ -13,7 +13,10 @@ by ``vlsforest experiment <name>`` and by a workflow target (``workflow/rules/ex
 * :mod:`~vlsforest.experiments.shift_room` — the scaled cubes' size and what the random shift
   changes (finding F6);
 * :mod:`~vlsforest.experiments.cog_shift` — what the CoG shift does to the cubes the returns come
-  from (finding F4).
+  from (finding F4);
+* :mod:`~vlsforest.experiments.cog_parts` — the CoG shift's vertical and horizontal parts,
+  simulated apart (finding F4).
 
-The last three read a finished run's files (:mod:`~vlsforest.experiments.run_outputs`).
+The last four read a finished run's files (:mod:`~vlsforest.experiments.run_outputs`); the CoG
+parts also simulate its plots again with its surveys and seeds.
 """

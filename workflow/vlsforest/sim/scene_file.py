@@ -48,6 +48,7 @@ The reader is what :meth:`vlsforest.sim.scene.Scene.from_yaml` and
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +111,45 @@ def build_scene(cfg: dict, scene_type, base_dir=".", source: str = "scene", voxe
     for n, p in enumerate(parts):
         _add_part(scene, p, base, f"{source}: parts[{n}]", voxel_transform)
     return scene
+
+
+def targets_region(site, margin_m: float, max_voxel_size: float) -> tuple[list[float], float]:
+    """The simulation region around a scene's target trees.
+
+    Parameters
+    ----------
+    site : str or Path
+        A ``site.json`` (``vlsforest scene targets``) with the targets' ``targets_extent``
+        ``[xmin, ymin, xmax, ymax]`` of their TLS points.
+    margin_m : float
+        Margin around the extent (m). A target's voxels reach one cell diagonal beyond its
+        points, so a narrower margin is widened to ``√2 · max_voxel_size``.
+    max_voxel_size : float
+        The scene's largest voxel cell (m; 0 without voxels).
+
+    Returns
+    -------
+    region : list of 4 floats
+        ``[xmin, ymin, xmax, ymax]`` widened by the margin.
+    margin : float
+        The margin used.
+
+    Raises
+    ------
+    InputDataError
+        When the file has no ``targets_extent``.
+    """
+    import json
+
+    src = Path(site)
+    try:
+        ext = [float(v) for v in json.loads(src.read_text())["targets_extent"]]
+        if len(ext) != 4:
+            raise ValueError(f"{len(ext)} values, 4 needed")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputDataError(f"{src}: no 'targets_extent' to take the region from ({exc})") from None
+    m = max(float(margin_m), math.sqrt(2.0) * float(max_voxel_size))
+    return [ext[0] - m, ext[1] - m, ext[2] + m, ext[3] + m], m
 
 
 def voxelise_points(xyz, size: float, min_points: int = 1) -> np.ndarray:

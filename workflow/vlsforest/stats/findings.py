@@ -337,7 +337,8 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                     f4_missing.append(f"{sc} {metric}")
                 ev.append(f"{sc}: {metric} change CoG − scaled {e.text(_unit(metric))}: "
                           f"{'lower' if good else 'not lower'}")
-    cause, experiment = (_cog_cause(experiments.get("tls_step"), experiments.get("cog_shift"), f4_missing)
+    cause, experiment = (_cog_cause(experiments.get("tls_step"), experiments.get("cog_shift"), f4_missing,
+                                    experiments.get("cog_parts"))
                          if f4_missing else ("", ""))
     out.append(_row("F4", "Shifting the scaled cubes to the centre of gravity lowers Hmean, the multiple-return "
                           "share, tree height and CPA slightly.", ok, ev,
@@ -549,7 +550,7 @@ def _fill_cause(result, misses, coarse_errors) -> tuple[str, str]:
             f"beyond the negligible effect"), text
 
 
-def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
+def _cog_cause(result, shift_result, missing, parts_result=None) -> tuple[str, str]:
     """Cause and experiment of F4's disagreeing parts from the CoG-shift experiment and the TLS
     points' centre of gravity in the 0.25 m cells at the embedded forest's and the study's step.
 
@@ -570,8 +571,10 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
     (and nearer the stem axis) than at ours; the step experiment supports it for the height parts
     when the vertical offset at the finest step lies below zero by more than twice its standard
     error and below the coarsest step's by more than twice their combined standard error; for
-    ``cpa`` the same of the radial offset. The multiple-return share has no such link: its parts
-    stay unexplained.
+    ``cpa`` the same of the radial offset. The multiple-return share has no such link. From the
+    CoG-parts experiment (:mod:`vlsforest.experiments.cog_parts`), for the parts the causes above
+    leave: (5) the shift's two parts act against each other: the vertical part alone lowers the
+    metric (95 % interval below zero) and the horizontal part alone raises it (above zero).
     """
     still = list(missing)
     causes, texts = [], []
@@ -650,6 +653,32 @@ def _cog_cause(result, shift_result, missing) -> tuple[str, str]:
                           f"the cells (or nearer the stem), so the CoG shift lowers (or draws in) the cubes: "
                           f"{', '.join(by_step)}")
             still = [m for m in still if m not in by_step]
+    if parts_result and still:
+        against, parts = [], []
+        summ = parts_result.get("summary") or {}
+        for part in still:
+            sc, metric = part.split()[0], part.split()[-1]
+            v = (summ.get(sc) or {}).get(metric) or {}
+            ci = {k: _mean_interval(v.get(k)) for k in ("vertical", "horizontal", "whole")}
+            if any(c is None for c in ci.values()):
+                continue
+            nd = 2 if metric == "multi_return_pct" else 3
+            parts.append(f"{part}: " + ", ".join(
+                f"{name} {v[k]['mean']:+.{nd}f} {_unit(metric)} (95 % CI {ci[k][0]:+.{nd}f} to {ci[k][1]:+.{nd}f})"
+                for k, name in (("vertical", "vertical part alone"), ("horizontal", "horizontal part alone"),
+                                ("whole", "whole shift"))))
+            if ci["vertical"][1] < 0 < ci["horizontal"][0]:
+                against.append(part)
+        n = max((v.get("n", 0) for per in summ.values() for m in per.values() for v in m.values()), default=0)
+        if parts:
+            texts.append(f"CoG-parts experiment ({n} target trees; the unshifted cubes moved by only the vertical "
+                         f"or only the horizontal component of their CoG displacement and simulated with the run's "
+                         f"surveys, seeds and region): " + "; ".join(parts))
+        if against:
+            causes.append("the shift's two parts act against each other: moving the cubes only down (or up) lowers "
+                          "these parts, moving them only sideways raises them (the 95 % intervals of the parts "
+                          f"alone lie below and above zero; {', '.join(against)})")
+            still = [m for m in still if m not in against]
     if not texts:
         return ("not established: the cubes the returns come from and the TLS angular step are the candidates "
                 "(untested in this run)",
