@@ -124,8 +124,6 @@ def _target_metrics(scene, survey, seed, region, tgt, tmp: Path, workers: int | 
     flush()
     df = cloud_metrics(read_las(trees, allow_empty=True), "tree_id", ground_z={t.target_id: t.ground_z for t in tgt},
                        tree_ids=sorted(seg_to_target.values()), source=str(trees))
-    sim.unlink()
-    trees.unlink()
     # as the run's metrics tables hold them
     return {int(r["tree_id"]): {m: float(FLOAT_FORMAT % r[m]) for m in METRICS} for _, r in df.iterrows()}
 
