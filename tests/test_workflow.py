@@ -81,7 +81,7 @@ def _expected_outputs(cfg):
     return out
 
 
-def _run_file_experiments(cfg, methods):
+def _run_file_experiments(cfg, methods, scenarios=None):
     """The enabled experiments that read the run's files of any of ``methods`` (crown outline:
     the fixed and unshifted scaled methods' tree clouds; shift room, CoG shift and CoG parts: the
     scaled methods' metrics)."""
@@ -91,8 +91,13 @@ def _run_file_experiments(cfg, methods):
              "shift_room": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "random")],
              "cog_shift": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")],
              "cog_parts": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")]}
-    return {f"results/experiments/{name}.json" for name, used in reads.items()
-            if (exps.get(name) or {}).get("enabled") and set(used) & set(methods)}
+    out = {f"results/experiments/{name}.json" for name, used in reads.items()
+           if (exps.get(name) or {}).get("enabled") and set(used) & set(methods)}
+    # the CoG-parts experiment reads only its own scenarios' files
+    if scenarios is not None and not set(scenarios) & set((exps.get("cog_parts") or {}).get("scenarios")
+                                                          or cfg["scenarios"]):
+        out.discard("results/experiments/cog_parts.json")
+    return out
 
 
 def _downstream_of_sims(cfg, pairs):
@@ -100,7 +105,7 @@ def _downstream_of_sims(cfg, pairs):
     experiments that read those simulations."""
     out = {"results/summary/tree_metrics.csv", "results/summary/sim_times.csv", "results/summary/figures"}
     out |= {f"results/summary/stats/{f}" for f in STATS_FILES}
-    out |= _run_file_experiments(cfg, {m for m, _ in pairs})
+    out |= _run_file_experiments(cfg, {m for m, _ in pairs}, {s for _, s in pairs})
     for plot in cfg["plots"]:
         for method, scenario in pairs:
             out |= {f"results/{plot}/{method}/{scenario}/{f}"

@@ -113,12 +113,13 @@ def test_unknown_command_is_an_error(toy):
 # the real package
 # ---------------------------------------------------------------------------------------------
 #: module edited → the commands that import it (read from the import statements by hand):
-#: _treecells is imported by extract, which commands extract and scene (match_targets) and the
-#: diagnosis (diagnose.simulation) import; stems.py only by commands.stems; stats/findings.py by
+#: _treecells is imported by extract, which commands extract and scene (match_targets), the
+#: diagnosis (diagnose.simulation) and the CoG-parts experiment (commands.experiment) import;
+#: stems.py only by commands.stems; stats/findings.py by
 #: the stats package, which commands.stats and report.figures (commands.report) import;
 #: commands/demo.py by no rule's command.
 REAL_EDITS = {
-    "_treecells.py": {"extract", "scene", "diagnose"},
+    "_treecells.py": {"extract", "scene", "diagnose", "experiment"},
     "stems.py": {"stems"},
     "stats/findings.py": {"stats", "report"},
     "commands/demo.py": set(),
@@ -159,9 +160,11 @@ def test_every_rule_that_runs_the_library_hashes_its_own_command():
 # ---------------------------------------------------------------------------------------------
 #: module edited → rules of the quick study whose outputs Snakemake marks "params changed"
 #: (the rules of REAL_EDITS' commands: extract → extract_reference, sim_trees; scene → targets,
-#: crowns, scene; stats → stats; report → figures; the quick config has no diagnosis)
+#: crowns, scene; experiment → the quick config's experiments crown outline, CoG shift and CoG
+#: parts; stats → stats; report → figures; the quick config has no diagnosis)
 SNAKEMAKE_EDITS = {
-    "_treecells.py": {"extract_reference", "sim_trees", "targets", "crowns", "scene"},
+    "_treecells.py": {"extract_reference", "sim_trees", "targets", "crowns", "scene", "experiment_crown_outline",
+                      "experiment_cog_shift", "experiment_cog_parts"},
     "stats.py": {"stats", "figures"},
     "commands/demo.py": set(),
 }
