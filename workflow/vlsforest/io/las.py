@@ -305,48 +305,31 @@ class LasPieces:
             raise ValueError(f"{self.path}: no piece of points to write")
         header = self._header
         header.offsets = np.floor(self._lo) if self.n_points else np.zeros(3)
-        if self._spill is not None:
-            try:
-                self._write_spilled(header)
-            finally:
+        try:
+            _write_records(self.path, header, self._placed(header))
+        finally:
+            if self._spill is not None:
                 self._spill.close()
-                self._spill, self._spilled = None, []
-            return self.path
-        pieces = self._pieces
-        if len(pieces) == 1:
-            xyz, rec = pieces.pop()
-            _place_xyz(self.path, header, rec, xyz)
-        else:
-            rec = np.empty(self.n_points, dtype=header.point_format.dtype())
-            at = freed = 0
-            while pieces:
-                xyz, part = pieces.pop(0)
-                n = len(part)
-                rec[at:at + n] = part
-                _place_xyz(self.path, header, rec[at:at + n], xyz)
-                at += n
-                freed += xyz.nbytes + part.nbytes
-                del xyz, part
-                if freed > 64 << 20:  # the pieces' pages back to the system while the records fill
-                    release_freed_memory()
-                    freed = 0
-        self._held = 0
-        _write_records(self.path, header, [rec])
+            self._spill, self._spilled, self._pieces, self._held = None, [], [], 0
         return self.path
 
-    def _write_spilled(self, header) -> None:
-        """Write the temporary file's pieces, then those in memory, one piece at a time."""
-        def placed():
+    def _placed(self, header):
+        """Each piece's records with its coordinates placed, in the order added: the temporary
+        file's pieces, then those in memory (each released once the writer has it)."""
+        if self._spill is not None:
             for xyz, rec in self._read_spilled():
                 _place_xyz(self.path, header, rec, xyz)
                 yield rec
-            while self._pieces:
-                xyz, rec = self._pieces.pop(0)
-                _place_xyz(self.path, header, rec, xyz)
-                yield rec
-            self._held = 0
-
-        _write_records(self.path, header, placed())
+        freed = 0
+        while self._pieces:
+            xyz, rec = self._pieces.pop(0)
+            _place_xyz(self.path, header, rec, xyz)
+            yield rec
+            freed += xyz.nbytes + rec.nbytes
+            del xyz, rec
+            if freed > 64 << 20:  # the written pieces' pages back to the system
+                release_freed_memory()
+                freed = 0
 
 
 def _las_header(attrs: dict) -> laspy.LasHeader:
