@@ -100,6 +100,8 @@ RULE_IMPORTS = {
     "experiment_cog_shift": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.cog_shift"]),
     "experiment_cog_parts": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.cog_parts",
                                             "vlsforest.sim"]),
+    "experiment_reseed": ("experiment", ["vlsforest.commands.experiment", "vlsforest.experiments.reseed",
+                                         "vlsforest.sim"]),
 }
 
 

@@ -529,3 +529,41 @@ def test_cog_parts_simulates_as_the_run_does(quick_run, tmp_path):
             assert s["none"]["mean"] == 0.0
             assert s["all"]["mean"] == pytest.approx(s["whole"]["mean"], abs=1e-9)
             assert s["interaction"]["mean"] == pytest.approx(s["whole"]["mean"] - s["all"]["mean"], abs=1e-9)
+
+
+def test_reseed_repeats_the_run_and_draws_anew(quick_run, tmp_path):
+    """With the seed offset 0 the reseed experiment gives the run's own metrics of the method,
+    tree by tree and digit for digit (its simulation and measurement are the run's); with another
+    seed the range noise is drawn anew and the trees' Hmean moves. The workflow's own result of
+    the quick run holds every target tree."""
+    from vlsforest.experiments.reseed import METRICS, changes, run_reseed
+
+    workdir, _, _ = quick_run
+    manifest = _cog_parts_manifest(workdir, scenarios=("als",))
+    same = run_reseed(manifest, "scaled", ["als"], {"als": 0}, 1.0, tmp_path, seed_offset=0, workers=2)
+    assert len(same["trees"]) == 4 and list(tmp_path.iterdir()) == []
+    assert same["seeds"] == {"als": {"run": 0, "reseeded": 0}}
+    for row in same["trees"]:
+        for k in METRICS:
+            a, b = row["scenarios"]["als"]["reseeded"][k], row["scenarios"]["als"]["run"][k]
+            assert a == b or (math.isnan(a) and math.isnan(b)), (row["target_id"], k, a, b)
+    other = run_reseed(manifest, "scaled", ["als"], {"als": 0}, 1.0, tmp_path, seed_offset=1, workers=1)
+    moved = [c for c in changes(other, "als", "hmean") if c != 0.0]
+    assert len(moved) == 4 and all(abs(c) < 0.1 for c in moved), moved
+    assert other["summary"]["als"]["hmean"]["n"] == 4
+    wf = json.loads((workdir / "results" / "experiments" / "reseed.json").read_text())
+    assert wf["method"] == "scaled" and wf["seed_offset"] == 1 and len(wf["trees"]) == 4
+
+
+def test_reseed_refuses_bad_arguments(tmp_path):
+    from vlsforest.experiments.reseed import run_reseed
+
+    m = _cog_parts_manifest(tmp_path, scenarios=("als",))
+    with pytest.raises(ConfigError, match="--seed-offset: -3 makes the seed of als negative"):
+        run_reseed(m, "scaled", ["als"], {"als": 2}, 1.0, tmp_path, seed_offset=-3)
+    with pytest.raises(ConfigError, match="--seeds-json: no seed for uls"):
+        run_reseed(m, "scaled", ["als", "uls"], {"als": 2}, 1.0, tmp_path)
+    with pytest.raises(ConfigError, match="--region-margin"):
+        run_reseed(m, "scaled", ["als"], {"als": 2}, -1.0, tmp_path)
+    with pytest.raises(ConfigError, match="plot 'Q1' does not name the fixed_0.25 scene"):
+        run_reseed(m, "fixed_0.25", ["als"], {"als": 2}, 1.0, tmp_path)

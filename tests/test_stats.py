@@ -833,3 +833,36 @@ def test_f6_cause_from_the_shift_room():
     exp["shift_room"]["summary"]["als"] = part(10.0, 10.0)
     f, _ = _findings(m, vc, tt, experiments=exp)
     assert f["F6"]["cause"].startswith("not established")
+
+
+def test_f6_cause_from_the_runs_own_noise():
+    """A CBH that the random shift moves by ±0.5 m per tree with no mean change: "no change
+    within ±0.1 m" fails on 12 trees. The reseed experiment names the run's own noise where the
+    same model simulated again moves the CBH as far (its interval reaching beyond ±0.1 m too),
+    and does not where the reseeded CBH repeats within ±0.1 m."""
+    m, vc, tt = study_like()
+    sel = m["method"] == "scaled_random_shift"
+    m.loc[sel, "cbh"] = m.loc[sel, "cbh"] + np.where(m.loc[sel, "tree_id"].astype(int) % 2 == 0, 0.5, -0.5)
+    f, _ = _findings(m, vc, tt)
+    assert f["F6"]["verdict"] == "disagrees" and "reseed experiment not run" in f["F6"]["experiment"]
+
+    def reseed(spread):
+        trees = [{"plot": "P1", "target_id": t, "group": "conifer",
+                  "scenarios": {"als": {"run": {"cbh": 5.0}, "reseeded": {"cbh": 5.0 + spread * (-1) ** t}}}}
+                 for t in range(12)]
+        return {"method": "scaled", "seed_offset": 1, "scenarios": ["als"], "trees": trees}
+
+    f, _ = _findings(m, vc, tt, experiments={"reseed": reseed(0.5)})
+    cause, exp = f["F6"]["cause"], f["F6"]["experiment"]
+    assert "the run's own noise (als cbh)" in cause and "not established for uls cbh" in cause, cause
+    assert "reseed experiment (12 target trees, scaled simulated again with the seed + 1)" in exp
+    assert "als cbh: reseeded − run +0.00 m (95 % CI" in exp and "reaching beyond ±0.10 m" in exp
+    # the same model repeats within ±0.1 m: the noise explains nothing
+    f, _ = _findings(m, vc, tt, experiments={"reseed": reseed(0.02)})
+    assert "the run's own noise (" not in f["F6"]["cause"]
+    assert "not established for als cbh, uls cbh: the run's own noise does not explain it" in f["F6"]["cause"]
+    assert "within ±0.10 m" in f["F6"]["experiment"]
+    # a shift whose change is told apart from zero is not noise, however noisy the metric
+    m.loc[sel, "cbh"] = m.loc[sel, "cbh"] + 1.0
+    f, _ = _findings(m, vc, tt, experiments={"reseed": reseed(0.5)})
+    assert "the run's own noise (" not in f["F6"]["cause"]

@@ -84,19 +84,22 @@ def _expected_outputs(cfg):
 def _run_file_experiments(cfg, methods, scenarios=None):
     """The enabled experiments that read the run's files of any of ``methods`` (crown outline:
     the fixed and unshifted scaled methods' tree clouds; shift room, CoG shift and CoG parts: the
-    scaled methods' metrics)."""
+    scaled methods' metrics; reseed: its method's, by default the first unshifted scaled one)."""
     ms, exps = cfg["methods"], cfg.get("experiments") or {}
+    unshifted = [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") == "none"]
     reads = {"crown_outline": [m for m, e in ms.items()
                                if e["kind"] == "fixed" or (e["kind"] == "scaled" and e.get("shift", "none") == "none")],
              "shift_room": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "random")],
              "cog_shift": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")],
-             "cog_parts": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")]}
+             "cog_parts": [m for m, e in ms.items() if e["kind"] == "scaled" and e.get("shift", "none") in ("none", "cog")],
+             "reseed": [(exps.get("reseed") or {}).get("method") or unshifted[0]] if unshifted else []}
     out = {f"results/experiments/{name}.json" for name, used in reads.items()
            if (exps.get(name) or {}).get("enabled") and set(used) & set(methods)}
-    # the CoG-parts experiment reads only its own scenarios' files
-    if scenarios is not None and not set(scenarios) & set((exps.get("cog_parts") or {}).get("scenarios")
-                                                          or cfg["scenarios"]):
-        out.discard("results/experiments/cog_parts.json")
+    # the CoG-parts and reseed experiments read only their own scenarios' files
+    for name in ("cog_parts", "reseed"):
+        if scenarios is not None and not set(scenarios) & set((exps.get(name) or {}).get("scenarios")
+                                                              or cfg["scenarios"]):
+            out.discard(f"results/experiments/{name}.json")
     return out
 
 

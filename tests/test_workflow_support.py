@@ -160,11 +160,11 @@ def test_every_rule_that_runs_the_library_hashes_its_own_command():
 # ---------------------------------------------------------------------------------------------
 #: module edited → rules of the quick study whose outputs Snakemake marks "params changed"
 #: (the rules of REAL_EDITS' commands: extract → extract_reference, sim_trees; scene → targets,
-#: crowns, scene; experiment → the quick config's experiments crown outline, CoG shift and CoG
-#: parts; stats → stats; report → figures; the quick config has no diagnosis)
+#: crowns, scene; experiment → the quick config's experiments crown outline, CoG shift, CoG
+#: parts and reseed; stats → stats; report → figures; the quick config has no diagnosis)
 SNAKEMAKE_EDITS = {
     "_treecells.py": {"extract_reference", "sim_trees", "targets", "crowns", "scene", "experiment_crown_outline",
-                      "experiment_cog_shift", "experiment_cog_parts"},
+                      "experiment_cog_shift", "experiment_cog_parts", "experiment_reseed"},
     "stats.py": {"stats", "figures"},
     "commands/demo.py": set(),
 }

@@ -379,17 +379,24 @@ def manifest_paths(manifest, keep=lambda key: True):
     return out
 
 
+def experiment_subset(name, key, known, what):
+    """``experiments.<name>.<key>``: the names it lists, each checked against the configured
+    ``known`` ones (a WorkflowError naming the key otherwise), or None where it lists none."""
+    named = experiment_setting(name, key)
+    if not named:
+        return None
+    unknown = [x for x in named if x not in known]
+    if unknown:
+        raise WorkflowError(f"Invalid configuration at 'experiments.{name}.{key}': "
+                            f"{', '.join(map(repr, unknown))} is not a configured {what} ({', '.join(known)})")
+    return list(named)
+
+
 def crown_outline_methods():
     """The methods the crown-outline experiment takes apart: ``experiments.crown_outline.methods``,
     else every fixed method and the unshifted scaled ones."""
-    named = experiment_setting("crown_outline", "methods")
-    if named:
-        unknown = [m for m in named if m not in METHODS]
-        if unknown:
-            raise WorkflowError(f"Invalid configuration at 'experiments.crown_outline.methods': "
-                                f"{', '.join(map(repr, unknown))} is not a configured method ({', '.join(METHODS)})")
-        return list(named)
-    return [m for m in METHODS if config["methods"][m]["kind"] == "fixed"] + unshifted_scaled_methods()
+    return experiment_subset("crown_outline", "methods", METHODS, "method") or (
+        [m for m in METHODS if config["methods"][m]["kind"] == "fixed"] + unshifted_scaled_methods())
 
 
 def shift_pair(experiment, shift):
@@ -422,33 +429,47 @@ def cog_parts_methods():
     return shift_pair("cog_parts", "cog")
 
 
-def cog_parts_scenarios():
-    """The scenarios the CoG-parts experiment simulates: ``experiments.cog_parts.scenarios``,
-    else every scenario."""
-    named = experiment_setting("cog_parts", "scenarios")
-    if named:
-        unknown = [sc for sc in named if sc not in SCENARIOS]
-        if unknown:
-            raise WorkflowError(f"Invalid configuration at 'experiments.cog_parts.scenarios': "
-                                f"{', '.join(map(repr, unknown))} is not a configured scenario ({', '.join(SCENARIOS)})")
-        return list(named)
-    return list(SCENARIOS)
+def experiment_scenarios(name):
+    """The scenarios experiment ``name`` simulates: ``experiments.<name>.scenarios``, else every
+    scenario."""
+    return experiment_subset(name, "scenarios", SCENARIOS, "scenario") or list(SCENARIOS)
+
+
+def resimulation_manifest(methods, scene_method, scenarios):
+    """The files an experiment that simulates the run's plots again reads, by plot: the
+    run-outputs manifest of ``methods`` (their voxel models and metrics of ``scenarios``) with
+    each plot's site and surveys and ``scene_method``'s scene folder."""
+    out = {}
+    for plot, entry in run_outputs_manifest(methods).items():
+        ms = {m: {"voxels": e["voxels"], "metrics": {sc: e["metrics"][sc] for sc in scenarios}}
+              for m, e in entry["methods"].items()}
+        ms[scene_method]["scene"] = f"results/{plot}/{scene_method}/scene"
+        out[plot] = {"targets": entry["targets"], "site": f"results/{plot}/site.json",
+                     "surveys": {sc: f"results/{plot}/surveys/{sc}.yaml" for sc in scenarios}, "methods": ms}
+    return out
 
 
 def cog_parts_manifest():
-    """The files the CoG-parts experiment reads, by plot: the run-outputs manifest of its two
-    methods (their voxel models and metrics) with each plot's site and surveys and the
-    unshifted method's scene folder."""
+    """The files the CoG-parts experiment reads (:func:`resimulation_manifest` of its two
+    methods, with the unshifted method's scene)."""
     base, shifted = cog_parts_methods()
-    out = {}
-    for plot, entry in run_outputs_manifest([base, shifted]).items():
-        scenarios = cog_parts_scenarios()
-        methods = {m: {"voxels": e["voxels"], "metrics": {sc: e["metrics"][sc] for sc in scenarios}}
-                   for m, e in entry["methods"].items()}
-        methods[base]["scene"] = f"results/{plot}/{base}/scene"
-        out[plot] = {"targets": entry["targets"], "site": f"results/{plot}/site.json",
-                     "surveys": {sc: f"results/{plot}/surveys/{sc}.yaml" for sc in scenarios}, "methods": methods}
-    return out
+    return resimulation_manifest([base, shifted], base, experiment_scenarios("cog_parts"))
+
+
+def reseed_method():
+    """The method the reseed experiment simulates again: ``experiments.reseed.method``, else the
+    first unshifted scaled method."""
+    m = experiment_setting("reseed", "method") or (unshifted_scaled_methods() or [None])[0]
+    if m is None or m not in METHODS:
+        raise WorkflowError("Invalid configuration at 'experiments.reseed.method': "
+                            + (f"{m!r} is not a configured method" if m else "no unshifted scaled method is configured"))
+    return m
+
+
+def reseed_manifest():
+    """The files the reseed experiment reads (:func:`resimulation_manifest` of its method)."""
+    m = reseed_method()
+    return resimulation_manifest([m], m, experiment_scenarios("reseed"))
 
 
 def enabled_experiments():

@@ -159,12 +159,44 @@ rule experiment_cog_parts:
         inputs=lambda wildcards: json.dumps(cog_parts_manifest(), sort_keys=True),
         base=lambda wildcards: cog_parts_methods()[0],
         shifted=lambda wildcards: cog_parts_methods()[1],
-        scenarios=lambda wildcards: " ".join(cog_parts_scenarios()),
-        seeds=lambda wildcards: json.dumps({sc: seed_of_scenario(sc) for sc in cog_parts_scenarios()},
+        scenarios=lambda wildcards: " ".join(experiment_scenarios("cog_parts")),
+        seeds=lambda wildcards: json.dumps({sc: seed_of_scenario(sc) for sc in experiment_scenarios("cog_parts")},
                                            sort_keys=True),
         margin=config["simulation"]["region_margin_m"],
         library=command_hash("experiment"),
     shell:
         "vlsforest experiment cog-parts --inputs-json {params.inputs:q} --base {params.base} "
         "--shifted {params.shifted} --scenarios {params.scenarios} --seeds-json {params.seeds:q} "
+        "--region-margin {params.margin} --workers {threads} -o {output} > {log} 2>&1"
+
+
+rule experiment_reseed:
+    # simulates one method again with each scenario's seed plus an offset, with the run's surveys
+    # and simulation region (one simulation per plot and scenario): the run's own noise
+    input:
+        lambda wildcards: manifest_paths(reseed_manifest()),
+    output:
+        "results/experiments/reseed.json",
+    log:
+        "logs/experiments/reseed.log",
+    benchmark:
+        "logs/benchmarks/experiments/reseed.tsv"
+    conda:
+        "../../envs/vlsforest.yaml"
+    threads: 16
+    resources:
+        mem_mb=simulate_mem_mb,
+        runtime=simulate_runtime,
+    params:
+        inputs=lambda wildcards: json.dumps(reseed_manifest(), sort_keys=True),
+        method=lambda wildcards: reseed_method(),
+        scenarios=lambda wildcards: " ".join(experiment_scenarios("reseed")),
+        seeds=lambda wildcards: json.dumps({sc: seed_of_scenario(sc) for sc in experiment_scenarios("reseed")},
+                                           sort_keys=True),
+        offset=lambda wildcards: experiment_setting("reseed", "seed_offset", 1),
+        margin=config["simulation"]["region_margin_m"],
+        library=command_hash("experiment"),
+    shell:
+        "vlsforest experiment reseed --inputs-json {params.inputs:q} --method {params.method} "
+        "--scenarios {params.scenarios} --seeds-json {params.seeds:q} --seed-offset {params.offset} "
         "--region-margin {params.margin} --workers {threads} -o {output} > {log} 2>&1"

@@ -10,7 +10,8 @@
   returns are kept with their return number, number of returns and GPS time (multiple-return
   shares need them).
 * :func:`extract_simulated` takes the points of a simulated cloud by object id (each target's
-  stem and crown carry their own ids, :func:`vlsforest.domain.labels.object_ids`).
+  stem and crown carry their own ids, :func:`vlsforest.domain.labels.object_ids`);
+  :func:`simulated_targets` gives a simulated cloud's target points with each one's target id.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from vlsforest.domain.labels import object_ids
 from vlsforest.domain.species import DEFAULT_GROUP, species_group
 from vlsforest.errors import ConfigError, InputDataError
 from vlsforest.io.las import PointCloud
@@ -324,5 +326,30 @@ def extract_simulated(cloud: PointCloud, id_map: dict) -> np.ndarray:
     return out
 
 
+def simulated_targets(cloud: PointCloud, seg_to_target: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The points of a simulated cloud that belong to target trees, and each one's target id.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+        A simulated cloud (with the ``object_id`` attribute).
+    seg_to_target : dict int → int
+        Segment id (the tree whose stem and crown carry the object ids
+        :func:`vlsforest.domain.labels.object_ids` gives) → target id.
+
+    Returns
+    -------
+    keep : ndarray bool (n,)
+        The points of a target's stem or crown.
+    target : ndarray int32 (keep.sum(),)
+        The target id of each kept point, in the cloud's order.
+    """
+    lab = extract_simulated(cloud, {oid: seg for seg in seg_to_target for oid in object_ids(seg)})
+    keep = lab > 0
+    segs = np.array(sorted(seg_to_target), dtype=np.int64)
+    tgts = np.array([seg_to_target[s] for s in segs], dtype=np.int32)
+    return keep, tgts[np.searchsorted(segs, lab[keep])]
+
+
 __all__ = ["NOT_TREE_CLASSES", "ColumnIndex", "TreeLabeller", "extract_reference", "extract_simulated", "match_targets",
-           "stable_argsort"]
+           "simulated_targets", "stable_argsort"]

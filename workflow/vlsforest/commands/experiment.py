@@ -23,7 +23,11 @@ shifted model's pulses reach (:func:`vlsforest.experiments.cog_shift.run_cog_shi
 ``vlsforest experiment cog-parts --inputs-json JSON --base scaled --shifted scaled_cog_shift
 --scenarios als uls --seeds-json JSON --region-margin 1 -o cog_parts.json`` simulates the CoG
 shift's vertical and horizontal parts apart with the run's surveys and seeds
-(:func:`vlsforest.experiments.cog_parts.run_cog_parts`). ``--inputs-json`` names the run's files
+(:func:`vlsforest.experiments.cog_parts.run_cog_parts`).
+``vlsforest experiment reseed --inputs-json JSON --method scaled --scenarios als --seeds-json JSON
+[--seed-offset 1] --region-margin 1 -o reseed.json`` simulates one method again with each
+scenario's seed plus the offset and sets the target trees' metrics beside the run's
+(:func:`vlsforest.experiments.reseed.run_reseed`). ``--inputs-json`` names the run's files
 (:mod:`vlsforest.experiments.run_outputs`).
 
 Same config and seed give the same bytes.
@@ -105,19 +109,35 @@ def register(subparsers) -> argparse.ArgumentParser:
                        description="Move the unshifted scaled cubes by only the vertical or only the horizontal "
                                    "part of their CoG displacement, simulate each with the run's surveys, seeds "
                                    "and region, and set the target trees' changes beside the whole shift's.")
-    q.add_argument("--inputs-json", required=True, metavar="JSON",
-                   help=inputs_help + "; each plot also with its site (site.json) and surveys (scenario → "
-                                      "SURVEY.yaml), the base method with its scene (the folder of its SCENE.yaml)")
+    _simulation_options(q, inputs_help, "the base method")
     q.add_argument("--base", required=True, metavar="METHOD", help="the unshifted scaled method")
     q.add_argument("--shifted", required=True, metavar="METHOD", help="its CoG-shift variant")
-    q.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios simulated")
-    q.add_argument("--seeds-json", required=True, metavar="JSON",
-                   help="scenario → the seed of its simulations in the run")
-    q.add_argument("--region-margin", type=float, required=True, metavar="M",
-                   help="the simulation region's margin around the targets (m; the run's simulation.region_margin_m)")
-    q.add_argument("--workers", type=int, default=1, metavar="N", help="simulation worker processes (default 1)")
     _result_file(q)
+    r = sub.add_parser("reseed", help="the run's own noise: one method simulated again with another seed",
+                       description="Simulate one method of a finished run again with the run's surveys and region "
+                                   "and each scenario's seed plus an offset, and set the target trees' metrics "
+                                   "beside the run's.")
+    _simulation_options(r, inputs_help, "the method")
+    r.add_argument("--method", required=True, metavar="METHOD", help="the method simulated again")
+    r.add_argument("--seed-offset", type=int, default=1, metavar="K",
+                   help="added to each scenario's seed (default 1; 0 reproduces the run's metrics)")
+    _result_file(r)
     return p
+
+
+def _simulation_options(parser, inputs_help: str, scene_owner: str) -> None:
+    """The options of an experiment that simulates a finished run's plots again
+    (:mod:`vlsforest.experiments.resimulate`); ``scene_owner`` names the method whose scene it reads."""
+    parser.add_argument("--inputs-json", required=True, metavar="JSON",
+                        help=inputs_help + "; each plot also with its site (site.json) and surveys (scenario → "
+                                           f"SURVEY.yaml), {scene_owner} with its scene (the folder of its SCENE.yaml)")
+    parser.add_argument("--scenarios", nargs="+", required=True, metavar="SCENARIO", help="the scenarios simulated")
+    parser.add_argument("--seeds-json", required=True, metavar="JSON",
+                        help="scenario → the seed of its simulations in the run")
+    parser.add_argument("--region-margin", type=float, required=True, metavar="M",
+                        help="the simulation region's margin around the targets (m; the run's "
+                             "simulation.region_margin_m)")
+    parser.add_argument("--workers", type=int, default=1, metavar="N", help="simulation worker processes (default 1)")
 
 
 def _result_file(parser) -> None:
@@ -155,7 +175,7 @@ def run(args) -> int:
     """Execute ``vlsforest experiment`` with parsed ``args``; return 0."""
     from vlsforest.io.atomic import write_text
 
-    if args.experiment in ("crown-outline", "shift-room", "cog-shift", "cog-parts"):
+    if args.experiment in ("crown-outline", "shift-room", "cog-shift", "cog-parts", "reseed"):
         return _run_on_outputs(args, write_text)
     cfg = _json_object(args.config_json, "--config-json")
     seed = cfg.get("seed", 0)
@@ -189,8 +209,22 @@ def run(args) -> int:
 
 def _run_on_outputs(args, write_text) -> int:
     """The experiments that take a finished run's files apart (``crown-outline``, ``shift-room``,
-    ``cog-shift``, ``cog-parts``)."""
+    ``cog-shift``, ``cog-parts``, ``reseed``)."""
     manifest = _json_object(args.inputs_json, "--inputs-json")
+    if args.experiment == "reseed":
+        from vlsforest.commands import check_workers
+        from vlsforest.experiments.reseed import run_reseed
+
+        check_workers(args.workers)
+        res = run_reseed(manifest, args.method, args.scenarios, _json_object(args.seeds_json, "--seeds-json"),
+                         args.region_margin, tmp_dir=args.output.parent, seed_offset=args.seed_offset,
+                         workers=args.workers, progress=_log("reseed"))
+        write_text(args.output, json.dumps(res, indent=1, sort_keys=True) + "\n")
+        for sc, per in res["summary"].items():
+            for k, v in per.items():
+                print(f"vlsforest experiment reseed: {sc} {k}: reseeded − run {v['mean']:+.3f} "
+                      f"(se {v['se']:.3f}, {v['n']} trees)")
+        return 0
     if args.experiment == "cog-parts":
         from vlsforest.commands import check_workers
         from vlsforest.experiments.cog_parts import run_cog_parts

@@ -76,8 +76,7 @@ def run(args) -> int:
 
     from vlsforest.commands.metrics import ground_table, write_metrics
     from vlsforest.errors import InputDataError
-    from vlsforest.extract import extract_reference, extract_simulated
-    from vlsforest.domain.labels import object_ids
+    from vlsforest.extract import extract_reference, simulated_targets
     from vlsforest.io.atomic import flush
     from vlsforest.io.las import read_las, write_las
 
@@ -101,20 +100,15 @@ def run(args) -> int:
             print(f"extract reference: {n_out} points of classes {','.join(map(str, excl))} left out")
         else:
             print("extract reference: every class kept (--exclude-classes '')")
+        keep = lab > 0
+        tree = np.array([seg_to_target[int(t)] for t in lab[keep]], dtype=np.int32)
     else:
-        id_map = {}
-        for tid in seg_to_target:
-            for oid in object_ids(tid):
-                id_map[oid] = tid
-        lab = extract_simulated(cloud, id_map)
-    keep = lab > 0
+        keep, tree = simulated_targets(cloud, seg_to_target)
     if not keep.any():
         raise InputDataError(f"{args.cloud}: none of the targets has a point in the cloud (target ids "
                              f"{', '.join(str(int(t)) for t in targets.target_id)}; tree ids "
                              f"{', '.join(str(int(t)) for t in targets.tree_id)})")
-    out = cloud.subset(keep)
-    tree = np.array([seg_to_target[int(t)] for t in lab[keep]], dtype=np.int32)
-    write_las(args.output, out, extra={"tree_id": tree})
+    write_las(args.output, cloud.subset(keep), extra={"tree_id": tree})
     counts = {int(t): int((tree == t).sum()) for t in targets.target_id}
     print(f"extract {args.what}: {int(keep.sum())} of {len(cloud)} points in {len(counts)} target trees {counts}")
     if args.metrics is not None:  # from the file as written (LAS-quantised), like a later `metrics` run

@@ -15,8 +15,11 @@ by ``vlsforest experiment <name>`` and by a workflow target (``workflow/rules/ex
 * :mod:`~vlsforest.experiments.cog_shift` — what the CoG shift does to the cubes the returns come
   from (finding F4);
 * :mod:`~vlsforest.experiments.cog_parts` — the CoG shift's vertical and horizontal parts,
-  simulated apart (finding F4).
+  simulated apart (finding F4);
+* :mod:`~vlsforest.experiments.reseed` — the run's own noise: one method simulated again with
+  another seed (finding F6).
 
-The last four read a finished run's files (:mod:`~vlsforest.experiments.run_outputs`); the CoG
-parts also simulate its plots again with its surveys and seeds.
+The last five read a finished run's files (:mod:`~vlsforest.experiments.run_outputs`); the CoG
+parts and the reseed also simulate its plots again with its surveys
+(:mod:`~vlsforest.experiments.resimulate`).
 """

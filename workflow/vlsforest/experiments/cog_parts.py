@@ -12,10 +12,7 @@ only the vertical component (``vertical``) or only the horizontal components (``
 of its CoG displacement, and simulates each with the run's own surveys, seeds and simulation
 region, everything else held fixed (the scene's other parts, materials and back ends are those
 of the unshifted method's scene file, read with a ``voxel_transform``). The target trees' metrics
-come out as the run's do: the returns are written as LAS, the targets' points taken by their
-object ids (:func:`vlsforest.extract.extract_simulated`), written and read again, and measured
-by :func:`vlsforest.metrics.cloud_metrics` above each target's ground height, with the digits
-of the run's metrics tables (:data:`vlsforest.metrics.FLOAT_FORMAT`).
+come out as the run's do (:func:`vlsforest.experiments.resimulate.simulated_metrics`).
 
 Per scenario and metric the result gives, over the target trees, the change of each part
 (part − unshifted) and the change of the whole shift (the run's shifted metrics − the run's
@@ -32,15 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vlsforest.domain.labels import object_ids
-from vlsforest.errors import ConfigError, InputDataError
+from vlsforest.errors import InputDataError
+from vlsforest.experiments.resimulate import check_simulation, plot_surveys, run_metrics, simulated_metrics
 from vlsforest.experiments.run_outputs import mean_se, method_files, plot_files, targets
-from vlsforest.extract import extract_simulated
-from vlsforest.io.csvfile import read_csv_table
-from vlsforest.io.atomic import flush
-from vlsforest.io.las import read_las, write_las
 from vlsforest.io.voxel_model import VoxelModel
-from vlsforest.metrics import FLOAT_FORMAT, cloud_metrics
 
 __all__ = ["METRICS", "PARTS", "partial_shift", "run_cog_parts"]
 
@@ -106,33 +98,6 @@ def _rows_of(table: np.ndarray, query: np.ndarray) -> np.ndarray:
     return np.where(found, order[pos], -1)
 
 
-def _target_metrics(scene, survey, seed, region, tgt, tmp: Path, workers: int | None) -> dict:
-    """The target trees' metrics of one simulation, taken as the run takes them."""
-    from vlsforest.sim import simulate_to_las
-
-    sim = tmp / "sim.laz"
-    simulate_to_las(scene, survey, sim, seed=seed, workers=workers, region=region)
-    flush()  # a command's outputs are installed at its end: these temporary files are read back at once
-    cloud = read_las(sim, allow_empty=True, require=("object_id",))
-    id_map = {oid: t.segment_id for t in tgt for oid in object_ids(t.segment_id)}
-    lab = extract_simulated(cloud, id_map)
-    keep = lab > 0
-    seg_to_target = {t.segment_id: t.target_id for t in tgt}
-    trees = tmp / "trees.laz"
-    write_las(trees, cloud.subset(keep),
-              extra={"tree_id": np.array([seg_to_target[int(s)] for s in lab[keep]], dtype=np.int32)})
-    flush()
-    df = cloud_metrics(read_las(trees, allow_empty=True), "tree_id", ground_z={t.target_id: t.ground_z for t in tgt},
-                       tree_ids=sorted(seg_to_target.values()), source=str(trees))
-    # as the run's metrics tables hold them
-    return {int(r["tree_id"]): {m: float(FLOAT_FORMAT % r[m]) for m in METRICS} for _, r in df.iterrows()}
-
-
-def _run_metrics(path: str) -> dict:
-    df = read_csv_table(path, "metrics table", METRICS, ids=("tree_id",))
-    return {int(r["tree_id"]): {m: float(r[m]) for m in METRICS} for _, r in df.iterrows()}
-
-
 def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequence[str], seeds: Mapping,
                   margin_m: float, tmp_dir, parts: Mapping | None = None, workers: int | None = 1,
                   progress=None) -> dict:
@@ -140,28 +105,14 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
 
     Parameters
     ----------
-    manifest : mapping
-        The run's files by plot (:mod:`vlsforest.experiments.run_outputs`), each plot also with
-        ``site`` (its ``site.json``) and ``surveys`` (scenario → SURVEY.yaml), and the base
-        method with ``scene`` (the folder of its SCENE.yaml); both methods with ``voxels`` and
-        ``metrics``.
+    manifest, scenarios, seeds, margin_m, tmp_dir, workers, progress
+        As every experiment that simulates a run again takes them
+        (:mod:`vlsforest.experiments.resimulate`); the base method's ``scene`` is simulated and
+        both methods need their ``voxels`` and ``metrics``.
     base, shifted : str
         The unshifted scaled method and its shifted variant.
-    scenarios : sequence of str
-        The scenarios simulated.
-    seeds : mapping
-        Scenario → the seed its simulations ran with.
-    margin_m : float
-        The simulation region's margin around the targets (the run's
-        ``simulation.region_margin_m``).
-    tmp_dir : path
-        Folder for each simulation's temporary files (removed at the end).
     parts : mapping, optional
         Part name → axes (default :data:`PARTS`).
-    workers : int, optional
-        Simulation worker processes (the result does not depend on it).
-    progress : callable, optional
-        Called with a line per simulation.
 
     Returns
     -------
@@ -175,16 +126,7 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
     from vlsforest.sim.scene_file import targets_region
 
     parts = dict(PARTS if parts is None else parts)
-    if not scenarios:
-        raise ConfigError("--scenarios: at least one scenario")
-    if not (isinstance(margin_m, (int, float)) and margin_m >= 0):
-        raise ConfigError(f"--region-margin: must be ≥ 0 (m), got {margin_m!r}")
-    missing = [sc for sc in scenarios if sc not in seeds]
-    if missing:
-        raise ConfigError(f"--seeds-json: no seed for {', '.join(missing)}")
-    bad = [sc for sc in scenarios if isinstance(seeds[sc], bool) or not isinstance(seeds[sc], int) or seeds[sc] < 0]
-    if bad:
-        raise ConfigError(f"--seeds-json: the seed of {', '.join(bad)} must be an integer ≥ 0")
+    check_simulation(scenarios, seeds, margin_m)
     Path(tmp_dir).mkdir(parents=True, exist_ok=True)
     trees = []
     for plot, entry in plot_files(manifest, "--inputs-json").items():
@@ -192,11 +134,8 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
         scene_yaml = Path(method_files(plot, entry, base, "scene", option="--inputs-json")) / "scene.yaml"
         shifted_path = method_files(plot, entry, shifted, "voxels", option="--inputs-json")
         moved = VoxelModel.load(shifted_path)
-        site = entry.get("site")
-        surveys = entry.get("surveys") or {}
-        if not isinstance(site, str) or any(not isinstance(surveys.get(sc), str) for sc in scenarios):
-            raise ConfigError(f"--inputs-json: plot {plot!r} needs its 'site' and a 'surveys' path per scenario")
-        run = {sc: {m: _run_metrics(method_files(plot, entry, m, "metrics", sc, option="--inputs-json"))
+        site, surveys = plot_surveys(plot, entry, scenarios)
+        run = {sc: {m: run_metrics(method_files(plot, entry, m, "metrics", sc, option="--inputs-json"), METRICS)
                     for m in (base, shifted)} for sc in scenarios}
         rows = {t.target_id: {"plot": plot, "target_id": t.target_id, "group": t.group,
                               "scenarios": {sc: {"base": run[sc][base].get(t.target_id),
@@ -208,7 +147,8 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
                 survey = load_survey(surveys[sc])
                 region, _ = targets_region(site, float(margin_m), scene.max_voxel_size)
                 with tempfile.TemporaryDirectory(dir=tmp_dir, prefix=".cog-parts-") as tmp:
-                    got = _target_metrics(scene, survey, int(seeds[sc]), region, tgt, Path(tmp), workers)
+                    got = simulated_metrics(scene, survey, int(seeds[sc]), region, tgt, Path(tmp), METRICS,
+                                            workers)
                 for tid, row in rows.items():
                     row["scenarios"][sc][part] = got.get(tid)
                 if progress:

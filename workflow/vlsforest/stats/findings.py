@@ -24,7 +24,8 @@ A finding that disagrees names its cause only where an experiment tests it:
   (:mod:`vlsforest.experiments.crown_outline`: each model's CPA error split into its own outline,
   what the simulation does not see and the crown base), ``F6`` the shift-room experiment
   (:mod:`vlsforest.experiments.shift_room`: the cubes' size against what the random shift
-  changes, over the trees).
+  changes, over the trees) and the reseed experiment (:mod:`vlsforest.experiments.reseed`: the
+  run's own noise, the unshifted model simulated again with another seed).
 
 Everywhere else the cause column says that no experiment has tested a cause yet.
 """
@@ -386,10 +387,11 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                 good = _within(e, margin)
                 ok.append(good)
                 if not good:
-                    f6_missing.append((sc, metric))
+                    f6_missing.append((sc, metric, margin, e))
                 ev.append(f"{sc}: {metric} change random − scaled {e.text(_unit(metric))}: "
                           f"{'within' if good else 'the interval reaches beyond'} ±{_fmt(margin)} {_unit(metric)}")
-    cause, experiment = _shift_room_cause(experiments.get("shift_room"), f6_missing) if f6_missing else ("", "")
+    cause, experiment = (_f6_cause(experiments.get("shift_room"), experiments.get("reseed"), f6_missing, seed)
+                         if f6_missing else ("", ""))
     out.append(_row("F6", "The random shift of the scaled cubes changes nothing (Hmean, multiple returns, CBH, "
                           "CPA).", ok, ev, _tolerance_text(*tols), cause, experiment))
 
@@ -669,7 +671,7 @@ def _cog_cause(result, shift_result, missing, parts_result=None) -> tuple[str, s
                                 ("whole", "whole shift"))))
             if ci["vertical"][1] < 0 < ci["horizontal"][0]:
                 against.append(part)
-        n = max((v.get("n", 0) for per in summ.values() for m in per.values() for v in m.values()), default=0)
+        n = len(parts_result.get("trees", []))
         if parts:
             texts.append(f"CoG-parts experiment ({n} target trees; the unshifted cubes moved by only the vertical "
                          f"or only the horizontal component of their CoG displacement and simulated with the run's "
@@ -900,8 +902,50 @@ def _order_by_own(trees, t5, methods, own_key, ref_key, mae_col):
     return by_mae == by_own, [(m, own[m]) for m in by_own], [(m, float(t5.loc[m, mae_col])) for m in by_mae]
 
 
-def _shift_room_cause(result, missing) -> tuple[str, str]:
-    """Cause and experiment of F6's disagreeing parts from the shift-room experiment.
+def _f6_cause(shift_room, reseed, missing, seed: int) -> tuple[str, str]:
+    """Cause and experiment of F6's disagreeing parts from the shift-room and reseed experiments.
+
+    ``missing``: ``(scenario, metric, margin, effect)`` of each part whose change under the random
+    shift reaches beyond the negligible effect. The shift-room experiment is asked first
+    (:func:`_shift_room_parts`); the parts it leaves go to the reseed experiment
+    (:func:`_reseed_parts`).
+    """
+    names = [f"{sc} {metric}" for sc, metric, _, _ in missing]
+    if shift_room:
+        room, left, exp = _shift_room_parts(shift_room, [(sc, metric) for sc, metric, _, _ in missing])
+    else:
+        room, left = [], names
+        exp = "shift-room experiment not run: `snakemake --cores 2 results/experiments/shift_room.json`"
+    noise, texts = [], []
+    rest = [m for m, n in zip(missing, names) if n in left]
+    if rest and reseed:
+        noise, n, reseed_exp = _reseed_parts(reseed, rest, seed)
+        exp += "; " + reseed_exp
+    elif rest:
+        exp += "; reseed experiment not run: `snakemake --cores 2 results/experiments/reseed.json`"
+    unexplained = [n for n in left if n not in noise]
+    if room:
+        texts.append(f"the scaled cubes' size: the shift moves a cube within the room its cell leaves, and the "
+                     f"change shrinks as the cubes grow ({', '.join(room)}); the study's cube sizes are not "
+                     f"published, so whether its cubes left the shift less room is not tested")
+    if noise:
+        texts.append(f"the run's own noise ({', '.join(noise)}): the unshifted model simulated again with only its "
+                     f"random draws changed moves the metric as far, its interval too reaching beyond the tolerance, "
+                     f"while the shift's change is not told apart from zero: {n} trees cannot show \"no change\" "
+                     f"within the tolerance of this metric")
+    if unexplained:
+        if shift_room or texts:
+            texts.append(f"not established for {', '.join(unexplained)}")
+        elif reseed:
+            texts.append(f"not established for {', '.join(unexplained)}: the run's own noise does not explain it; "
+                         f"the scaled cubes' size is the other candidate (untested in this run)")
+        else:
+            texts.append("not established: the scaled cubes' size is the candidate (untested in this run)")
+    return "; ".join(texts), exp
+
+
+def _shift_room_parts(result, missing) -> tuple[list, list, str]:
+    """The parts of F6 the shift-room experiment explains, those it leaves, and its text.
 
     A part is explained by the cubes' size where, across the target trees, its change shrinks as
     the cubes grow: the least-squares slope of the change on the mean cube side has the opposite
@@ -909,9 +953,6 @@ def _shift_room_cause(result, missing) -> tuple[str, str]:
     """
     from scipy.stats import t as student_t
 
-    if not result:
-        return ("not established: the scaled cubes' size is the candidate (untested in this run)",
-                "shift-room experiment not run: `snakemake --cores 2 results/experiments/shift_room.json`")
     summ = result.get("summary") or {}
     explained, unexplained, parts = [], [], []
     sides = {}
@@ -939,14 +980,45 @@ def _shift_room_cause(result, missing) -> tuple[str, str]:
     exp = (f"shift-room experiment ({n} target trees, the run's own files): mean cube side "
            + ", ".join(f"{g} {sides[g]:.3f} m" for g in sorted(sides) if np.isfinite(sides[g]))
            + f" in a {result.get('cell_m', 0.25):g} m cell; " + "; ".join(parts))
-    cause = ""
-    if explained:
-        cause = (f"the scaled cubes' size: the shift moves a cube within the room its cell leaves, and the change "
-                 f"shrinks as the cubes grow ({', '.join(explained)}); the study's cube sizes are not published, "
-                 f"so whether its cubes left the shift less room is not tested")
-    if unexplained:
-        cause = (cause + "; " if cause else "") + f"not established for {', '.join(unexplained)}"
-    return cause, exp
+    return explained, unexplained, exp
+
+
+def _reseed_changes(result, scenario: str, metric: str) -> np.ndarray:
+    """Per target tree of the reseed experiment: reseeded − the run's value (NaN where missing)."""
+    out = []
+    for row in result.get("trees", []):
+        s = (row.get("scenarios") or {}).get(scenario) or {}
+        a, b = s.get("reseeded"), s.get("run")
+        out.append(math.nan if not a or not b else float(a.get(metric, math.nan)) - float(b.get(metric, math.nan)))
+    return np.asarray(out, float)
+
+
+def _reseed_parts(result, missing, seed: int) -> tuple[list, int, str]:
+    """The parts of F6 the run's own noise explains, the reseed experiment's tree count, its text.
+
+    A part is explained by the noise where (1) the reseed experiment's change (the same model
+    simulated again with another seed, reseeded − the run's, over the target trees) has a 95 %
+    interval that itself reaches beyond the part's negligible effect: with that many trees the
+    metric cannot show a change within the tolerance even where nothing but the random draws
+    changed; and (2) the shift's own change is not told apart from zero (its interval holds 0).
+    """
+    explained, parts = [], []
+    n = len(result.get("trees", []))
+    for sc, metric, margin, e in missing:
+        name, unit = f"{sc} {metric}", _unit(metric)
+        e0 = _effect(_reseed_changes(result, sc, metric), seed, "F6", "reseed", sc, metric)
+        if e0 is None or not np.isfinite(margin):
+            parts.append(f"{name}: no reseeded values")
+            continue
+        noisy = not _within(e0, margin)
+        if noisy and e.lo <= 0.0 <= e.hi:
+            explained.append(name)
+        parts.append(f"{name}: reseeded − run {e0.text(unit)}, "
+                     f"{'reaching beyond' if noisy else 'within'} ±{_fmt(margin)} {unit}; "
+                     f"the shift's change {e.text(unit)}")
+    exp = (f"reseed experiment ({n} target trees, {result.get('method', 'the unshifted model')} simulated again "
+           f"with the seed + {result.get('seed_offset', '?')}): " + "; ".join(parts))
+    return explained, n, exp
 
 
 def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> list[dict]:
