@@ -856,7 +856,7 @@ def test_f6_cause_from_the_runs_own_noise():
     cause, exp = f["F6"]["cause"], f["F6"]["experiment"]
     assert "the run's own noise (als cbh)" in cause and "not established for uls cbh" in cause, cause
     assert "reseed experiment (12 target trees, scaled simulated again with the seed + 1)" in exp
-    assert "als cbh: reseeded − run +0.00 m (95 % CI" in exp and "reaching beyond ±0.10 m" in exp
+    assert "als cbh: reseeded − run +0.00 m (95 % CI" in exp and "reaching beyond ±0.10 m; 12 of 12 trees changed, by up to 0.50 m" in exp
     # the same model repeats within ±0.1 m: the noise explains nothing
     f, _ = _findings(m, vc, tt, experiments={"reseed": reseed(0.02)})
     assert "the run's own noise (" not in f["F6"]["cause"]

@@ -929,10 +929,10 @@ def _f6_cause(shift_room, reseed, missing, seed: int) -> tuple[str, str]:
                      f"change shrinks as the cubes grow ({', '.join(room)}); the study's cube sizes are not "
                      f"published, so whether its cubes left the shift less room is not tested")
     if noise:
-        texts.append(f"the run's own noise ({', '.join(noise)}): the unshifted model simulated again with only its "
-                     f"random draws changed moves the metric as far, its interval too reaching beyond the tolerance, "
-                     f"while the shift's change is not told apart from zero: {n} trees cannot show \"no change\" "
-                     f"within the tolerance of this metric")
+        texts.append(f"the run's own noise ({', '.join(noise)}): simulated again with only its random draws changed, "
+                     f"the unshifted model's metric moves on some trees so that its interval, too, reaches beyond the "
+                     f"tolerance, while the shift's change is not told apart from zero: {n} trees cannot show "
+                     f"\"no change\" within the tolerance of this metric")
     if unexplained:
         if shift_room or texts:
             texts.append(f"not established for {', '.join(unexplained)}")
@@ -1006,16 +1006,20 @@ def _reseed_parts(result, missing, seed: int) -> tuple[list, int, str]:
     n = len(result.get("trees", []))
     for sc, metric, margin, e in missing:
         name, unit = f"{sc} {metric}", _unit(metric)
-        e0 = _effect(_reseed_changes(result, sc, metric), seed, "F6", "reseed", sc, metric)
+        change = _reseed_changes(result, sc, metric)
+        e0 = _effect(change, seed, "F6", "reseed", sc, metric)
         if e0 is None or not np.isfinite(margin):
             parts.append(f"{name}: no reseeded values")
             continue
         noisy = not _within(e0, margin)
         if noisy and e.lo <= 0.0 <= e.hi:
             explained.append(name)
+        moved = change[np.isfinite(change) & (change != 0.0)]
         parts.append(f"{name}: reseeded − run {e0.text(unit)}, "
                      f"{'reaching beyond' if noisy else 'within'} ±{_fmt(margin)} {unit}; "
-                     f"the shift's change {e.text(unit)}")
+                     f"{len(moved)} of {e0.n} trees changed"
+                     + (f", by up to {_fmt(float(np.abs(moved).max()))} {unit}" if len(moved) else "")
+                     + f"; the shift's change {e.text(unit)}")
     exp = (f"reseed experiment ({n} target trees, {result.get('method', 'the unshifted model')} simulated again "
            f"with the seed + {result.get('seed_offset', '?')}): " + "; ".join(parts))
     return explained, n, exp
