@@ -917,7 +917,7 @@ def _f6_cause(shift_room, reseed, missing, seed: int) -> tuple[str, str]:
         room, left = [], names
         exp = "shift-room experiment not run: `snakemake --cores 2 results/experiments/shift_room.json`"
     noise, texts = [], []
-    rest = [m for m, n in zip(missing, names) if n in left]
+    rest = [part for part, name in zip(missing, names) if name in left]
     if rest and reseed:
         noise, n, reseed_exp = _reseed_parts(reseed, rest, seed)
         exp += "; " + reseed_exp
