@@ -134,7 +134,8 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
         scene_yaml = Path(method_files(plot, entry, base, "scene", option="--inputs-json")) / "scene.yaml"
         shifted_path = method_files(plot, entry, shifted, "voxels", option="--inputs-json")
         moved = VoxelModel.load(shifted_path)
-        site, surveys = plot_surveys(plot, entry, scenarios)
+        site, paths = plot_surveys(plot, entry, scenarios)
+        surveys = {sc: load_survey(path) for sc, path in paths.items()}
         run = {sc: {m: run_metrics(method_files(plot, entry, m, "metrics", sc, option="--inputs-json"), METRICS)
                     for m in (base, shifted)} for sc in scenarios}
         rows = {t.target_id: {"plot": plot, "target_id": t.target_id, "group": t.group,
@@ -143,11 +144,10 @@ def run_cog_parts(manifest: Mapping, base: str, shifted: str, scenarios: Sequenc
                 for t in tgt}
         for part, axes in parts.items():
             scene = Scene.from_yaml(scene_yaml, voxel_transform=lambda m, a=axes: partial_shift(m, moved, a, shifted_path))
+            region, _ = targets_region(site, float(margin_m), scene.max_voxel_size)
             for sc in scenarios:
-                survey = load_survey(surveys[sc])
-                region, _ = targets_region(site, float(margin_m), scene.max_voxel_size)
                 with tempfile.TemporaryDirectory(dir=tmp_dir, prefix=".cog-parts-") as tmp:
-                    got = simulated_metrics(scene, survey, int(seeds[sc]), region, tgt, Path(tmp), METRICS,
+                    got = simulated_metrics(scene, surveys[sc], int(seeds[sc]), region, tgt, Path(tmp), METRICS,
                                             workers)
                 for tid, row in rows.items():
                     row["scenarios"][sc][part] = got.get(tid)

@@ -74,10 +74,10 @@ def run_reseed(manifest: Mapping, method: str, scenarios: Sequence[str], seeds: 
         site, surveys = plot_surveys(plot, entry, scenarios)
         tgt = targets(plot, entry)
         scene = Scene.from_yaml(scene_yaml)
+        region, _ = targets_region(site, float(margin_m), scene.max_voxel_size)
         rows = {t.target_id: {"plot": plot, "target_id": t.target_id, "group": t.group, "scenarios": {}} for t in tgt}
         for sc in scenarios:
             run = run_metrics(method_files(plot, entry, method, "metrics", sc, option="--inputs-json"), METRICS)
-            region, _ = targets_region(site, float(margin_m), scene.max_voxel_size)
             with tempfile.TemporaryDirectory(dir=tmp_dir, prefix=".reseed-") as tmp:
                 got = simulated_metrics(scene, load_survey(surveys[sc]), int(seeds[sc]) + seed_offset, region, tgt,
                                         Path(tmp), METRICS, workers)
