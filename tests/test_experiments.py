@@ -547,9 +547,14 @@ def test_reseed_repeats_the_run_and_draws_anew(quick_run, tmp_path):
         for k in METRICS:
             a, b = row["scenarios"]["als"]["reseeded"][k], row["scenarios"]["als"]["run"][k]
             assert a == b or (math.isnan(a) and math.isnan(b)), (row["target_id"], k, a, b)
+            c = row["scenarios"]["als"]["change"][k]
+            assert c == 0.0 or (math.isnan(a) and math.isnan(c)), (row["target_id"], k, c)
     other = run_reseed(manifest, "scaled", ["als"], {"als": 0}, 1.0, tmp_path, seed_offset=1, workers=1)
     moved = [c for c in changes(other, "als", "hmean") if c != 0.0]
     assert len(moved) == 4 and all(abs(c) < 0.1 for c in moved), moved
+    for row, c in zip(other["trees"], changes(other, "als", "hmean")):
+        s = row["scenarios"]["als"]
+        assert c == s["reseeded"]["hmean"] - s["run"]["hmean"]
     assert other["summary"]["als"]["hmean"]["n"] == 4
     wf = json.loads((workdir / "results" / "experiments" / "reseed.json").read_text())
     assert wf["method"] == "scaled" and wf["seed_offset"] == 1 and len(wf["trees"]) == 4

@@ -803,8 +803,38 @@ def test_t5_accuracy_order_from_the_crown_outline():
     row = f["T5:0.02 m fixed"]
     assert "CBH: the models' own crown bases set the order" in row["cause"] and "CBH: not tested" not in row["cause"]
     assert f"reference CBH| {fine[0]} 0.20 m, {fine[1]} 0.90 m; CBH MAE {fine[0]}" in row["experiment"]
-    f, _ = _findings(m, vc, tt, experiments=with_bases({fine[0]: 0.9, fine[1]: 0.2}))
-    assert "CBH: not established: the CBH order does not follow" in f["T5:0.02 m fixed"]["cause"]
+    # crown bases ranked against the CBH MAEs: is the CBH gap to 0.05 m beyond the trees' sampling noise?
+    bases = with_bases({fine[0]: 0.9, fine[1]: 0.2})
+    f, _ = _findings(m, vc, tt, experiments=bases)
+    row = f["T5:0.02 m fixed"]  # 0.02 m's CBH error +0.3 m, 0.05 m's +1.0 m: the study's order
+    assert "CBH: in the study's order against fixed_0.05" in row["cause"]
+    assert "fixed_0.02 − fixed_0.05: -0.70 m" in row["experiment"]
+
+    def fine_cbh(offsets):
+        """0.02 m's CBH = the reference's + an offset per tree (by tree id, cycled)."""
+        mm = m.copy()
+        sel = mm["method"] == "fixed_0.02"
+        ref = mm[mm["method"] == "reference"].set_index(["plot", "tree_id", "scenario"])["cbh"]
+        keys = pd.MultiIndex.from_frame(mm.loc[sel, ["plot", "tree_id", "scenario"]])
+        tree = mm.loc[sel, "tree_id"].astype(int).to_numpy()
+        mm.loc[sel, "cbh"] = ref.reindex(keys).to_numpy() + np.asarray(offsets)[tree % len(offsets)]
+        return mm
+
+    # 0.02 m's own crown base the nearer to the reference's, its CBH error the larger:
+    # a consistent +0.5 m more than 0.05 m's error lies beyond the noise of 12 trees
+    bases = with_bases({"fixed_0.02": 0.2, "fixed_0.05": 0.9})
+    f, _ = _findings(fine_cbh([1.5]), vc, tt, experiments=bases)
+    row = f["T5:0.02 m fixed"]
+    assert ("CBH: not established: the CBH order does not follow the models' own crown bases, and the gaps "
+            "fixed_0.02 − fixed_0.05 lie beyond the trees' sampling noise") in row["cause"]
+    # +0.05 m more on average, ±0.55 m from tree to tree: not told apart from no gap
+    f, _ = _findings(fine_cbh([1.6, 0.5]), vc, tt, experiments=bases)
+    row = f["T5:0.02 m fixed"]
+    assert ("CBH: the trees' sampling noise: the CBH MAE gaps against the study's order (fixed_0.02 − fixed_0.05) "
+            "are not told apart from zero") in row["cause"]
+    gap = row["experiment"].split("fixed_0.02 − fixed_0.05: ")[1]
+    lo, hi = (float(x) for x in gap.split("95 % CI ")[1].split(",")[0].split(" to "))
+    assert 0 < float(gap.split(" m ")[0]) < 0.1 and lo < 0 < hi
 
 
 def test_f6_cause_from_the_shift_room():
@@ -848,7 +878,8 @@ def test_f6_cause_from_the_runs_own_noise():
 
     def reseed(spread):
         trees = [{"plot": "P1", "target_id": t, "group": "conifer",
-                  "scenarios": {"als": {"run": {"cbh": 5.0}, "reseeded": {"cbh": 5.0 + spread * (-1) ** t}}}}
+                  "scenarios": {"als": {"run": {"cbh": 5.0}, "reseeded": {"cbh": 5.0 + spread * (-1) ** t},
+                                        "change": {"cbh": spread * (-1) ** t}}}}
                  for t in range(12)]
         return {"method": "scaled", "seed_offset": 1, "scenarios": ["als"], "trees": trees}
 

@@ -550,3 +550,20 @@ def test_extract_sim_metrics_are_those_of_the_written_trees(tmp_path, capsys):
     assert cli_main(bad) == 2
     assert "targets table lacks column(s) ['z']" in capsys.readouterr().err
     assert not (tmp_path / "u.laz").exists() and not (tmp_path / "u.csv").exists()
+
+
+def test_target_ids_maps_each_segment_to_its_target_in_order():
+    from vlsforest.extract import target_ids
+
+    seg_to_target = {12: 3, 5: 1, 40: 7}
+    segs = np.array([40, 5, 5, 12, 40, 12])
+    got = target_ids(segs, seg_to_target)
+    assert got.dtype == np.int32
+    assert got.tolist() == [seg_to_target[int(s)] for s in segs]
+    assert target_ids(np.zeros(0, dtype=np.int64), seg_to_target).tolist() == []
+    with pytest.raises(ValueError, match=r"\[6\]"):
+        target_ids(np.array([5, 6]), seg_to_target)
+    with pytest.raises(ValueError, match=r"\[99\]"):
+        target_ids(np.array([99]), seg_to_target)
+    with pytest.raises(ValueError):
+        target_ids(np.array([1]), {})

@@ -229,6 +229,10 @@ def _mutate(cfg, what):
         cfg.setdefault("diagnosis", {})["realisations"] = -1
     elif what == "unknown_diagnosis_method":
         cfg["diagnosis"] = {"enabled": True, "method": "scaled_typo"}
+    elif what == "unknown_reseed_method":
+        cfg["experiments"]["reseed"]["method"] = "scaled_typo"
+    elif what == "unknown_cog_shift_base":
+        cfg["experiments"]["cog_shift"]["base"] = "fixed_typo"
     elif what == "real_plot_without_scans":
         cfg["plots"]["R1"] = {"kind": "real", "tls": ["a.laz"], "plot_json": "p.json"}
     return cfg
@@ -249,6 +253,8 @@ BAD_CONFIGS = [
     ("misspelt_segment_key", "segment", "'stem_bridges' was unexpected"),
     ("negative_realisations", "diagnosis.realisations", "-1 is less than the minimum of 0"),
     ("unknown_diagnosis_method", "diagnosis.method", "'scaled_typo' is not a configured method"),
+    ("unknown_reseed_method", "experiments.reseed.method", "'scaled_typo' is not a configured method"),
+    ("unknown_cog_shift_base", "experiments.cog_shift.base", "'fixed_typo' is not a configured method"),
 ]
 
 

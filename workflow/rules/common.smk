@@ -399,18 +399,23 @@ def crown_outline_methods():
         [m for m in METHODS if config["methods"][m]["kind"] == "fixed"] + unshifted_scaled_methods())
 
 
+def experiment_method(experiment, key, default):
+    """``experiments.<experiment>.<key>``, else ``default``; a WorkflowError naming the key where
+    that is no configured method."""
+    m = experiment_setting(experiment, key) or default
+    if m is None or m not in METHODS:
+        raise WorkflowError(f"Invalid configuration at 'experiments.{experiment}.{key}': "
+                            + (f"{m!r} is not a configured method" if m else "no such scaled method is configured"))
+    return m
+
+
 def shift_pair(experiment, shift):
     """The unshifted scaled method and its ``shift`` variant that ``experiment`` compares:
     ``experiments.<experiment>.base`` / ``shifted``, else the first of each kind configured."""
     ms = config["methods"]
-    base = experiment_setting(experiment, "base") or (unshifted_scaled_methods() or [None])[0]
-    shifted = experiment_setting(experiment, "shifted") or next(
-        (m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift") == shift), None)
-    for key, m in (("base", base), ("shifted", shifted)):
-        if m is None or m not in METHODS:
-            raise WorkflowError(f"Invalid configuration at 'experiments.{experiment}.{key}': "
-                                + (f"{m!r} is not a configured method" if m else
-                                   "no such scaled method is configured"))
+    base = experiment_method(experiment, "base", (unshifted_scaled_methods() or [None])[0])
+    shifted = experiment_method(experiment, "shifted", next(
+        (m for m in METHODS if ms[m]["kind"] == "scaled" and ms[m].get("shift") == shift), None))
     return base, shifted
 
 
@@ -459,11 +464,7 @@ def cog_parts_manifest():
 def reseed_method():
     """The method the reseed experiment simulates again: ``experiments.reseed.method``, else the
     first unshifted scaled method."""
-    m = experiment_setting("reseed", "method") or (unshifted_scaled_methods() or [None])[0]
-    if m is None or m not in METHODS:
-        raise WorkflowError("Invalid configuration at 'experiments.reseed.method': "
-                            + (f"{m!r} is not a configured method" if m else "no unshifted scaled method is configured"))
-    return m
+    return experiment_method("reseed", "method", (unshifted_scaled_methods() or [None])[0])
 
 
 def reseed_manifest():

@@ -346,10 +346,40 @@ def simulated_targets(cloud: PointCloud, seg_to_target: dict) -> tuple[np.ndarra
     """
     lab = extract_simulated(cloud, {oid: seg for seg in seg_to_target for oid in object_ids(seg)})
     keep = lab > 0
+    return keep, target_ids(lab[keep], seg_to_target)
+
+
+def target_ids(segments: np.ndarray, seg_to_target: dict) -> np.ndarray:
+    """The target id of each point's segment.
+
+    Parameters
+    ----------
+    segments : ndarray int (n,)
+        Segment id per point; each must be a key of ``seg_to_target``.
+    seg_to_target : dict int → int
+        Segment id → target id.
+
+    Returns
+    -------
+    ndarray int32 (n,)
+        Target id per point, in the points' order.
+
+    Raises
+    ------
+    ValueError
+        If a segment id has no target.
+    """
     segs = np.array(sorted(seg_to_target), dtype=np.int64)
-    tgts = np.array([seg_to_target[s] for s in segs], dtype=np.int32)
-    return keep, tgts[np.searchsorted(segs, lab[keep])]
+    tgts = np.array([seg_to_target[s] for s in sorted(seg_to_target)], dtype=np.int32)
+    seg = np.asarray(segments, dtype=np.int64)
+    if not len(seg):
+        return np.zeros(0, dtype=np.int32)
+    pos = np.minimum(np.searchsorted(segs, seg), max(len(segs) - 1, 0))
+    if not len(segs) or not np.array_equal(segs[pos], seg):
+        bad = sorted(set(seg.tolist()) - set(segs.tolist()))
+        raise ValueError(f"segment ids without a target: {bad[:5]}")
+    return tgts[pos]
 
 
 __all__ = ["NOT_TREE_CLASSES", "ColumnIndex", "TreeLabeller", "extract_reference", "extract_simulated", "match_targets",
-           "simulated_targets", "stable_argsort"]
+           "simulated_targets", "stable_argsort", "target_ids"]

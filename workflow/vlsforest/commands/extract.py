@@ -76,7 +76,7 @@ def run(args) -> int:
 
     from vlsforest.commands.metrics import ground_table, write_metrics
     from vlsforest.errors import InputDataError
-    from vlsforest.extract import extract_reference, simulated_targets
+    from vlsforest.extract import extract_reference, simulated_targets, target_ids
     from vlsforest.io.atomic import flush
     from vlsforest.io.las import read_las, write_las
 
@@ -101,7 +101,7 @@ def run(args) -> int:
         else:
             print("extract reference: every class kept (--exclude-classes '')")
         keep = lab > 0
-        tree = np.array([seg_to_target[int(t)] for t in lab[keep]], dtype=np.int32)
+        tree = target_ids(lab[keep], seg_to_target)
     else:
         keep, tree = simulated_targets(cloud, seg_to_target)
     if not keep.any():

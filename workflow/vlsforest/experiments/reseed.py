@@ -13,7 +13,7 @@ the scene and the detector are those of the run), and measures the target trees 
 reproduces the run's own metrics digit for digit (a check of the measurement).
 
 Per scenario and metric the result gives, over the target trees, the change ``reseeded − the
-run's`` as mean, standard error and count; per tree both values.
+run's`` as mean, standard error and count; per tree both values and the change.
 """
 
 from __future__ import annotations
@@ -51,7 +51,8 @@ def run_reseed(manifest: Mapping, method: str, scenarios: Sequence[str], seeds: 
     dict
         ``method``, ``scenarios``, ``seeds`` (scenario → the run's seed and the seed simulated),
         ``trees`` (per target: plot, target id, group, and per scenario the metrics of ``run``
-        and ``reseeded``), ``summary`` (scenario → metric → mean, se, n of reseeded − run).
+        and ``reseeded`` and their ``change``, reseeded − run, NaN where either is missing),
+        ``summary`` (scenario → metric → mean, se, n of the changes).
 
     Raises
     ------
@@ -82,7 +83,9 @@ def run_reseed(manifest: Mapping, method: str, scenarios: Sequence[str], seeds: 
                 got = simulated_metrics(scene, load_survey(surveys[sc]), int(seeds[sc]) + seed_offset, region, tgt,
                                         Path(tmp), METRICS, workers)
             for tid, row in rows.items():
-                row["scenarios"][sc] = {"run": run.get(tid), "reseeded": got.get(tid)}
+                a, b = got.get(tid), run.get(tid)
+                row["scenarios"][sc] = {"run": b, "reseeded": a, "change": {
+                    m: float("nan") if a is None or b is None else float(a[m]) - float(b[m]) for m in METRICS}}
             if progress:
                 progress(f"reseed: {plot} {method} {sc}: {len(got)} target trees")
         trees += list(rows.values())
@@ -92,13 +95,9 @@ def run_reseed(manifest: Mapping, method: str, scenarios: Sequence[str], seeds: 
 
 
 def changes(result: Mapping, scenario: str, metric: str) -> list[float]:
-    """Per target tree of a result: the reseeded − the run's value (NaN where either is missing)."""
-    out = []
-    for row in result.get("trees", []):
-        s = (row.get("scenarios") or {}).get(scenario) or {}
-        a, b = s.get("reseeded"), s.get("run")
-        out.append(float("nan") if a is None or b is None else float(a[metric]) - float(b[metric]))
-    return out
+    """Per target tree of a result: its ``change`` of ``metric`` (reseeded − run; NaN where missing)."""
+    return [float(((row.get("scenarios") or {}).get(scenario) or {}).get("change", {}).get(metric, float("nan")))
+            for row in result.get("trees", [])]
 
 
 def _summary(trees, scenarios) -> dict:

@@ -136,6 +136,16 @@ class _Errors:
         j = get(a).merge(get(b), left_index=True, right_index=True, suffixes=("_a", "_b")).dropna()
         return j[f"{col}_a"].to_numpy(), j[f"{col}_b"].to_numpy(), j["ref_a"].to_numpy()
 
+    def abs_gap(self, a, b, metric, scenarios) -> np.ndarray:
+        """Per tree that a and b share: the mean over ``scenarios`` of |a's error| − |b's error|."""
+        def get(m, sc):
+            return self.block(m, sc, metric).set_index(["plot", "tree_id"])["error"].astype(float).abs()
+        parts = [pd.concat({"a": get(a, sc), "b": get(b, sc)}, axis=1).dropna() for sc in scenarios]
+        parts = [j["a"] - j["b"] for j in parts if len(j)]
+        if not parts:
+            return np.zeros(0)
+        return pd.concat(parts, axis=1).mean(axis=1).sort_index().to_numpy(float)
+
 
 def _margin(metric: str, ref: np.ndarray) -> tuple[float, cl.Tolerance | None]:
     """The negligible effect of ``metric`` in its own unit (CPA: % of the mean reference)."""
@@ -413,7 +423,7 @@ def evaluate_findings(errors: pd.DataFrame, tests: pd.DataFrame, mr_tests: pd.Da
                           "≈ 20 (broadleaf) percentage points.", ok, ev,
                     _tolerance_text(cl.NEGLIGIBLE_MULTI_RETURN), f7_cause, f7_exp))
 
-    out += _table5_rows(t5, roles, mr_tests, scen, d1_ok, experiments)
+    out += _table5_rows(t5, roles, mr_tests, scen, d1_ok, experiments, E, seed)
     return out
 
 
@@ -846,14 +856,16 @@ def _outline_cause(result, coarse, missing) -> tuple[str, str]:
     return cause, exp
 
 
-def _accuracy_outline_cause(result, t5, methods) -> tuple[str, str]:
+def _accuracy_outline_cause(result, t5, methods, gaps=()) -> tuple[str, str]:
     """Cause and experiment of a Table 5 accuracy-order disagreement from the crown-outline experiment.
 
     The CPA part of the accuracy follows the models' own outlines where the order of their mean
     absolute outline error (model outline − reference CPA, per tree) over ``methods`` is the order
     of their CPA MAE; the CBH part follows the models' own crown bases where the order of their
     mean absolute own-base error (the model's own CBH − the reference's, per tree) is the order of
-    their CBH MAE.
+    their CBH MAE. Where it does not, ``gaps`` test the trees' sampling noise: per other method
+    ``(method, the study ranks methods[0] more accurate, Effect of |methods[0]'s CBH error| − |its|
+    per tree)``; a gap against the study's order is noise where its 95 % interval holds zero.
     """
     if not result:
         return _outline_untested()
@@ -876,10 +888,36 @@ def _accuracy_outline_cause(result, t5, methods) -> tuple[str, str]:
     same, own, mae = cbh
     exp += ("; mean |own crown base − reference CBH| " + ", ".join(f"{m} {v:.2f} m" for m, v in own)
             + "; CBH MAE " + ", ".join(f"{m} {v:.2f} m" for m, v in mae))
-    cause += ("; CBH: the models' own crown bases set the order (each model's CBH error ranks as far as its own "
-              "crown base lies from the reference's)" if same
-              else "; CBH: not established: the CBH order does not follow the models' own crown bases")
-    return cause, exp
+    if same:
+        return cause + ("; CBH: the models' own crown bases set the order (each model's CBH error ranks as far as "
+                        "its own crown base lies from the reference's)"), exp
+    c, x = _cbh_gap_cause(methods[0], gaps)
+    return cause + "; CBH: " + c, exp + ("; " + x if x else "")
+
+
+def _cbh_gap_cause(me, gaps) -> tuple[str, str]:
+    """The CBH part of an accuracy-order disagreement the crown bases leave: the trees' sampling noise?
+
+    Each gap is ``(other method, the study ranks me more accurate, Effect of |me's CBH error| −
+    |other's| per tree)``. A gap against the study's order whose 95 % interval holds zero is not
+    told apart from no gap by the run's trees; where every gap against the order is such, the
+    trees' sampling noise explains the CBH part.
+    """
+    tested = [(o, better, e) for o, better, e in gaps if e is not None]
+    if not tested:
+        return "not established: the CBH order does not follow the models' own crown bases", ""
+    against = [(o, e) for o, better, e in tested if (e.mean > 0) == better and e.mean != 0]
+    resolved = [o for o, e in against if not e.lo <= 0.0 <= e.hi]
+    exp = ("CBH MAE gap over the target trees (paired bootstrap, per tree the mean over the scenarios): "
+           + "; ".join(f"{me} − {o}: {e.text('m')}" for o, _, e in tested))
+    if not against:
+        return "in the study's order against " + ", ".join(o for o, _, _ in tested), exp
+    if not resolved:
+        return ("the trees' sampling noise: the CBH MAE gaps against the study's order ("
+                + ", ".join(f"{me} − {o}" for o, _ in against)
+                + ") are not told apart from zero (their 95 % intervals hold 0)"), exp
+    return ("not established: the CBH order does not follow the models' own crown bases, and the gaps "
+            + ", ".join(f"{me} − {o}" for o in resolved) + " lie beyond the trees' sampling noise"), exp
 
 
 def _order_by_own(trees, t5, methods, own_key, ref_key, mae_col):
@@ -984,13 +1022,9 @@ def _shift_room_parts(result, missing) -> tuple[list, list, str]:
 
 
 def _reseed_changes(result, scenario: str, metric: str) -> np.ndarray:
-    """Per target tree of the reseed experiment: reseeded − the run's value (NaN where missing)."""
-    out = []
-    for row in result.get("trees", []):
-        s = (row.get("scenarios") or {}).get(scenario) or {}
-        a, b = s.get("reseeded"), s.get("run")
-        out.append(math.nan if not a or not b else float(a.get(metric, math.nan)) - float(b.get(metric, math.nan)))
-    return np.asarray(out, float)
+    """Per target tree of the reseed experiment: the ``change`` it wrote (reseeded − run; NaN where missing)."""
+    return np.asarray([((row.get("scenarios") or {}).get(scenario) or {}).get("change", {}).get(metric, math.nan)
+                       for row in result.get("trees", [])], float)
 
 
 def _reseed_parts(result, missing, seed: int) -> tuple[list, int, str]:
@@ -1025,7 +1059,7 @@ def _reseed_parts(result, missing, seed: int) -> tuple[list, int, str]:
     return explained, n, exp
 
 
-def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> list[dict]:
+def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments, E: _Errors, seed: int) -> list[dict]:
     t5 = t5.set_index("method") if "method" in t5.columns else t5
     parts = {}  # study key -> configured method name
     for key in cl.TABLE5:
@@ -1095,7 +1129,10 @@ def _table5_rows(t5, roles: StudyRoles, mr_tests, scen, d1_ok, experiments) -> l
                           f"CPA MAE {_fmt(r['cpa_mae_m2'], 1)} m²)"
                           + (f"; out of the study's order against {', '.join(bad)}" if bad else ""))
                 if bad:
-                    c, x = _accuracy_outline_cause(experiments.get("crown_outline"), t5, [me] + bad)
+                    gaps = [(o, la > accuracy_level[cl.TABLE5[k][3]],
+                             _effect(E.abs_gap(me, o, "cbh", scen), seed, "T5", me, o, "cbh"))
+                            for k, o in present.items() if o in bad]
+                    c, x = _accuracy_outline_cause(experiments.get("crown_outline"), t5, [me] + bad, gaps)
                     cause = (cause + "; " if cause else "") + c
                     experiment = (experiment + "; " if experiment else "") + x
             ev.append("model generation complexity: not measured")
