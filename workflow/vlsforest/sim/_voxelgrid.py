@@ -301,6 +301,10 @@ def _block_keys(coarse, nblk):
 # --------------------------------------------------------------------------------------------
 # numba kernels: tracing (all in cell units: p = (o - lo) / h, d = dir / h, same t)
 # --------------------------------------------------------------------------------------------
+# The small helpers are inlined in numba's IR (inline="always"); the large steps (_slab,
+# _cube_hit, _probe, _march_blocks, _march_words, _walk) are functions of their own: inlined,
+# they would make one body that numba compiles several times more slowly
+# (benchmarks/bench_compile.py), for the same hits at about the same speed.
 @njit(cache=True, inline="always")
 def _next_t(c, p, d, iv):
     """Ray parameter at which the ray leaves cell ``c`` along one axis (inf if parallel).
@@ -343,7 +347,7 @@ def _estimate(p, d, t):
     return np.int64(np.ceil(q)) - 1
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _slab(px, py, pz, dx, dy, dz, ivx, ivy, ivz, lox, loy, loz, hix, hiy, hiz):
     """Closed ray-box test (``iv = 1/d``). Returns (t, face); t = inf for a miss."""
     tn = -np.inf
@@ -407,7 +411,7 @@ def _slab(px, py, pz, dx, dy, dz, ivx, ivy, ivz, lox, loy, loz, hix, hiy, hiz):
     return 0.0, (-ax if sgn > 0.0 else ax)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cube_hit(v, cx, cy, cz, px, py, pz, dx, dy, dz, ivx, ivy, ivz, tmax, cubes):
     """Slab test of voxel ``v`` in cell (cx, cy, cz). Returns (t, face, voxel or -1)."""
     if cubes.shape[0] > 0:
@@ -425,7 +429,7 @@ def _cube_hit(v, cx, cy, cz, px, py, pz, dx, dy, dz, ivx, ivy, ivz, tmax, cubes)
     return np.inf, 0, np.int64(-1)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _probe(bid, cx, cy, cz, px, py, pz, dx, dy, dz, ivx, ivy, ivz, tmax, bs, wpb,
            masks, prefix, base, cubes):
     """Test cell (cx, cy, cz) of block ``bid``. Returns (t, face, voxel or -1)."""
@@ -452,7 +456,7 @@ def _exit_cell(c, d, lo, hi, n):
     return c
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, bx, by, bz,
                   tend, nx, ny, nz, bs, nbx, nby, coarse):
     """Follow the ray through consecutive empty blocks of Chebyshev radius 0.
@@ -510,7 +514,7 @@ def _march_blocks(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz,
         bz = qz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _march_words(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, tend,
                  nx, ny, nz, bs, bid, wpb, masks):
     """Follow the ray through consecutive empty 4x4x4 sub-blocks of occupied block ``bid``.
@@ -569,7 +573,7 @@ def _march_words(px, py, pz, dx, dy, dz, ivx, ivy, ivz, sx, sy, sz, cx, cy, cz, 
         uz = qz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _walk(px, py, pz, dx, dy, dz, ivx, ivy, ivz, cx, cy, cz, tend, tmax, nx, ny, nz,
           bs, nbx, nby, wpb, coarse, masks, prefix, base, cubes):
     """DDA from the settled start cell. Returns (t, face, voxel); voxel -1 for a miss."""
