@@ -323,7 +323,8 @@ def summarise(df) -> None:
 
 def _commit() -> str:
     """The code version a row was run with: the repository's short commit ("" outside git), with
-    "+" where the working tree differs from it."""
+    "+" where the working tree differs from it outside ``validation/results/`` (the rows this
+    campaign appends do not change the code)."""
     import subprocess
 
     def git(*args):
@@ -332,7 +333,7 @@ def _commit() -> str:
     head = git("rev-parse", "--short", "HEAD")
     if head.returncode != 0:
         return ""
-    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)validation/results").stdout.strip()
     return head.stdout.strip() + ("+" if dirty else "")
 
 
