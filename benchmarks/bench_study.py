@@ -12,6 +12,9 @@ records one row in ``benchmarks/results/bench_study.jsonl`` (:mod:`benchresult`)
   the workflow's default, the patch on; ``workflow/rules/scheduler_patch.py``);
 - ``max_rss_mb``: the largest resident set of any one process it waited for;
 - ``jobs``: the jobs Snakemake ran (from its summary line);
+- ``noop_rerun_wall_s`` and ``noop_rerun_jobs``: after a successful run, the wall time of the
+  same command again without ``--forceall``/``--forcerun`` (a rerun with nothing to do: its
+  start-up, the DAG build and the check of every output), and the jobs that rerun started (0);
 - ``rules``: per rule of the jobs this run ran (read from Snakemake's job lines: ``rule NAME:``
   and its ``benchmark:`` file), the number of jobs, their summed ``cpu_time`` and wall ``s`` and
   the largest ``max_rss`` (MB) from those benchmark files; a rule whose jobs have no benchmark
@@ -127,6 +130,21 @@ def own_cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def noop_rerun(cmd: list, args, env: dict) -> dict:
+    """Wall time and jobs of ``cmd`` again without its force flags, on the finished run."""
+    again = [c for c in cmd if c != "--forceall"]
+    if args.forcerun:
+        i = again.index("--forcerun")
+        again = again[:i] + again[i + 1 + len(args.forcerun):]
+    t0 = time.perf_counter()
+    proc = subprocess.run(again, cwd=args.workdir, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    out = proc.stdout + proc.stderr
+    m = re.findall(r"(\d+) of (\d+) steps \(100%\) done", out)
+    return {"noop_rerun_wall_s": round(wall, 2), "noop_rerun_jobs": int(m[-1][1]) if m else 0,
+            "noop_rerun_exit_code": proc.returncode}
+
+
 def main(argv) -> int:
     ap = argparse.ArgumentParser(prog="bench_study", description=__doc__.split("\n\n")[0])
     ap.add_argument("--workdir", type=Path, default=benchresult.REPO, help="the checkout to run in")
@@ -184,6 +202,9 @@ def main(argv) -> int:
                rules=rules, cpu_s_outside_benchmarked_rules=round(cpu - inside, 1),
                jobs_cpu_s_unsampled=round(cpu - own - inside, 1), exit_code=proc.returncode,
                scheduler_patch_env=os.environ.get("VLSFOREST_SCHEDULER_PATCH"))
+    if proc.returncode == 0:
+        row.update(noop_rerun(cmd, args, env))
+        print(f"  no-op rerun: {row['noop_rerun_wall_s']:.1f} s, {row['noop_rerun_jobs']} jobs")
     if args.note:
         row["note"] = args.note
     benchresult.record(**row)

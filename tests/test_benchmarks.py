@@ -6,6 +6,7 @@ import importlib
 import importlib.util
 import json
 import re
+import os
 import sys
 from pathlib import Path
 
@@ -130,6 +131,27 @@ def test_study_benchmark_sums_the_benchmark_files_of_the_jobs_run_by_rule(tmp_pa
     assert table["targets"] == {"jobs": 1, "cpu_s": 0.0, "wall_s": 0.4, "max_rss_mb": 0.0}
     assert table["all"] == {"jobs": 1}
     assert bench_study.rule_table(tmp_path, []) == {}
+
+
+def test_study_benchmark_reruns_without_its_force_flags(tmp_path):
+    """The no-op rerun is the run's own command less --forceall / --forcerun RULE …; its jobs
+    come from Snakemake's summary line (none when it prints none)."""
+    import types
+
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_study
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    echo = [sys.executable, "-c", "import sys; open('argv.txt', 'w').write(' '.join(sys.argv[1:]))"]
+    for flags, forcerun in ((["--forceall"], []), (["--forcerun", "stats", "figures"], ["stats", "figures"])):
+        args = types.SimpleNamespace(forcerun=forcerun, workdir=tmp_path)
+        got = bench_study.noop_rerun(echo + ["--cores", "2"] + flags + ["--configfile", "q.yaml"], args, dict(os.environ))
+        assert got["noop_rerun_jobs"] == 0 and got["noop_rerun_exit_code"] == 0 and got["noop_rerun_wall_s"] >= 0
+        assert (tmp_path / "argv.txt").read_text() == "--cores 2 --configfile q.yaml"
+    said = [sys.executable, "-c", "print('Nothing to be done.'); print('3 of 3 steps (100%) done')", "--forceall"]
+    got = bench_study.noop_rerun(said, types.SimpleNamespace(forcerun=[], workdir=tmp_path), dict(os.environ))
+    assert got["noop_rerun_jobs"] == 3
 
 
 def test_every_rule_that_runs_a_command_writes_a_benchmark_file():
