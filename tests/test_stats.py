@@ -825,8 +825,8 @@ def test_t5_accuracy_order_from_the_crown_outline():
     bases = with_bases({"fixed_0.02": 0.2, "fixed_0.05": 0.9})
     f, _ = _findings(fine_cbh([1.5]), vc, tt, experiments=bases)
     row = f["T5:0.02 m fixed"]
-    assert ("CBH: not established: the CBH order does not follow the models' own crown bases, and the gaps "
-            "fixed_0.02 − fixed_0.05 lie beyond the trees' sampling noise") in row["cause"]
+    assert ("CBH: not established: the CBH order does not follow the models' own crown bases, and the trees "
+            "resolve fixed_0.02 − fixed_0.05 beyond their sampling noise") in row["cause"]
     # +0.05 m more on average, ±0.55 m from tree to tree: not told apart from no gap
     f, _ = _findings(fine_cbh([1.6, 0.5]), vc, tt, experiments=bases)
     row = f["T5:0.02 m fixed"]

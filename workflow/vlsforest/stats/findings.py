@@ -916,8 +916,8 @@ def _cbh_gap_cause(me, gaps) -> tuple[str, str]:
         return ("the trees' sampling noise: the CBH MAE gaps against the study's order ("
                 + ", ".join(f"{me} − {o}" for o, _ in against)
                 + ") are not told apart from zero (their 95 % intervals hold 0)"), exp
-    return ("not established: the CBH order does not follow the models' own crown bases, and the gaps "
-            + ", ".join(f"{me} − {o}" for o in resolved) + " lie beyond the trees' sampling noise"), exp
+    return ("not established: the CBH order does not follow the models' own crown bases, and the trees resolve "
+            + ", ".join(f"{me} − {o}" for o in resolved) + " beyond their sampling noise (a 95 % interval without 0)"), exp
 
 
 def _order_by_own(trees, t5, methods, own_key, ref_key, mae_col):
